@@ -1,0 +1,167 @@
+"""Correlation kernels: the one home of phase correlation and masked normalized correlation.
+
+All surfaces here are in *full* mode: for a reference image of shape ``(Hr, Wr)`` and a moving
+image of shape ``(Hm, Wm)`` the surface has shape ``(Hr + Hm - 1, Wr + Wm - 1)`` and index
+``(i, j)`` stands for the shift ``u = (i - (Hm - 1), j - (Wm - 1))``: moving pixel ``p`` lands on
+reference pixel ``p + u``. Zero padding to that size means no circular wrap-around.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from scipy import fft
+
+_EPS = 100 * np.finfo(np.float64).eps
+
+
+def full_shape(ref_shape: tuple[int, int], mov_shape: tuple[int, int]) -> tuple[int, int]:
+    return (ref_shape[0] + mov_shape[0] - 1, ref_shape[1] + mov_shape[1] - 1)
+
+
+def shift_of_index(
+    index: tuple[float, float], mov_shape: tuple[int, int]
+) -> tuple[float, float]:
+    """Full-mode surface index -> shift ``(d_row, d_col)`` of the moving image."""
+    return (index[0] - (mov_shape[0] - 1), index[1] - (mov_shape[1] - 1))
+
+
+class _Correlator:
+    """Cross-correlations ``sum_p a(p + u) b(p)`` of many image pairs of two fixed shapes."""
+
+    def __init__(self, ref_shape: tuple[int, int], mov_shape: tuple[int, int]):
+        self.ref_shape, self.mov_shape = ref_shape, mov_shape
+        self.full = full_shape(ref_shape, mov_shape)
+        self.fft_shape = tuple(fft.next_fast_len(n, real=True) for n in self.full)
+
+    def spectrum(self, image: np.ndarray) -> np.ndarray:
+        return fft.rfft2(image, s=self.fft_shape)
+
+    def correlate(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
+        circ = fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape)
+        return self.to_full(circ)
+
+    def to_full(self, circ: np.ndarray) -> np.ndarray:
+        hm, wm = self.mov_shape
+        rolled = np.roll(circ, (hm - 1, wm - 1), axis=(0, 1))
+        return rolled[: self.full[0], : self.full[1]]
+
+
+def cross_power_correlation(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    *,
+    normalization: Literal["phase", "pomf", "none"] = "phase",
+) -> np.ndarray:
+    """Correlation surface from the cross-power spectrum, full mode.
+
+    - ``"phase"``: symmetric phase-only matched filter / phase correlation (Kuglin & Hines 1975;
+      Chen, Defrise & Deconinck 1994): ``C = F^-1{ F_r F_m* / |F_r F_m*| }``.
+    - ``"pomf"``: phase-only matched filter (Horner & Gianino 1984, Appl. Opt. 23(6)): the
+      moving image acts as the filter and keeps only its phase, ``C = F^-1{ F_r F_m* / |F_m| }``.
+    - ``"none"``: plain cross-correlation ``C = F^-1{ F_r F_m* }``.
+    """
+    corr = _Correlator(reference.shape, moving.shape)
+    fr = corr.spectrum(np.asarray(reference, dtype=np.float64))
+    fm = corr.spectrum(np.asarray(moving, dtype=np.float64))
+    cross = fr * np.conj(fm)
+    if normalization == "phase":
+        cross /= np.maximum(np.abs(cross), _EPS)
+    elif normalization == "pomf":
+        cross /= np.maximum(np.abs(fm), _EPS)
+    elif normalization != "none":
+        raise ValueError(f"unknown normalization {normalization!r}")
+    return corr.to_full(fft.irfft2(cross, s=corr.fft_shape))
+
+
+def masked_ncc(
+    reference: np.ndarray,
+    reference_mask: np.ndarray,
+    moving: np.ndarray,
+    moving_mask: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Masked normalized cross-correlation at every shift (Padfield 2012, IEEE TIP 21(5)).
+
+    Returns ``(ncc, overlap)``: the Pearson correlation of the two images over the cells valid in
+    both, and the number of those cells, for every full-mode shift. With ``n = m_r * m_m``
+    (correlation of the masks), ``S_r = (f_r m_r) * m_m``, ``S_m = m_r * (f_m m_m)`` (Padfield,
+    eq. 17 ff.)::
+
+        ncc = (sum f_r f_m - S_r S_m / n) / sqrt((sum f_r^2 - S_r^2/n) (sum f_m^2 - S_m^2/n))
+
+    Shifts with fewer than 3 common cells get ``ncc = 0``.
+    """
+    mr = np.asarray(reference_mask, dtype=np.float64)
+    mm = np.asarray(moving_mask, dtype=np.float64)
+    fr = np.where(mr > 0, reference, 0.0)
+    fm = np.where(mm > 0, moving, 0.0)
+    corr = _Correlator(fr.shape, fm.shape)
+    s_fr, s_fm = corr.spectrum(fr), corr.spectrum(fm)
+    s_mr, s_mm = corr.spectrum(mr), corr.spectrum(mm)
+    n = np.round(corr.correlate(s_mr, s_mm))
+    sum_r = corr.correlate(s_fr, s_mm)
+    sum_m = corr.correlate(s_mr, s_fm)
+    sum_rm = corr.correlate(s_fr, s_fm)
+    sum_rr = corr.correlate(corr.spectrum(fr * fr), s_mm)
+    sum_mm = corr.correlate(s_mr, corr.spectrum(fm * fm))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n_safe = np.maximum(n, 1.0)
+        num = sum_rm - sum_r * sum_m / n_safe
+        var_r = np.maximum(sum_rr - sum_r**2 / n_safe, 0.0)
+        var_m = np.maximum(sum_mm - sum_m**2 / n_safe, 0.0)
+        denom = np.sqrt(var_r * var_m)
+        tol = 1e3 * np.finfo(np.float64).eps * np.maximum(np.abs(sum_rr).max(), 1.0)
+        ncc = np.where((n >= 3) & (denom > tol), num / np.where(denom > 0, denom, 1.0), 0.0)
+    return np.clip(ncc, -1.0, 1.0), n
+
+
+def local_maxima(
+    surface: np.ndarray, *, k: int, exclusion: int = 2, valid: np.ndarray | None = None
+) -> list[tuple[int, int]]:
+    """The ``k`` highest peaks, each at least ``exclusion`` cells from a higher one."""
+    s = np.where(valid, surface, -np.inf) if valid is not None else surface.copy()
+    s = np.asarray(s, dtype=np.float64).copy()
+    peaks: list[tuple[int, int]] = []
+    for _ in range(k):
+        flat = int(np.argmax(s))
+        if not np.isfinite(s.flat[flat]):
+            break
+        i, j = np.unravel_index(flat, s.shape)
+        peaks.append((int(i), int(j)))
+        s[max(0, i - exclusion) : i + exclusion + 1, max(0, j - exclusion) : j + exclusion + 1] = (
+            -np.inf
+        )
+    return peaks
+
+
+def subpixel_peak(surface: np.ndarray, peak: tuple[int, int]) -> tuple[float, float]:
+    """Refine an integer peak by a 3-point parabola per axis: ``d = (c- - c+) / 2(c- - 2c0 + c+)``.
+
+    The offset is clipped to half a cell; at the border the integer position is kept.
+    """
+    out = []
+    for axis in (0, 1):
+        idx = list(peak)
+        if idx[axis] == 0 or idx[axis] == surface.shape[axis] - 1:
+            out.append(float(peak[axis]))
+            continue
+        lo, hi = list(idx), list(idx)
+        lo[axis] -= 1
+        hi[axis] += 1
+        cm, c0, cp = surface[tuple(lo)], surface[tuple(idx)], surface[tuple(hi)]
+        denom = cm - 2 * c0 + cp
+        d = 0.0 if denom >= 0 else float(np.clip((cm - cp) / (2 * denom), -0.5, 0.5))
+        out.append(peak[axis] + d)
+    return out[0], out[1]
+
+
+def peak_to_sidelobe(surface: np.ndarray, peak: tuple[int, int], *, exclude: int = 5) -> float:
+    """Peak-to-sidelobe ratio ``(p - mean_SL) / std_SL`` (Bolme et al. 2010), window excluded."""
+    mask = np.ones(surface.shape, bool)
+    i, j = peak
+    mask[max(0, i - exclude) : i + exclude + 1, max(0, j - exclude) : j + exclude + 1] = False
+    side = surface[mask]
+    if side.size < 2 or side.std() == 0:
+        return 0.0
+    return float((surface[peak] - side.mean()) / side.std())

@@ -1,0 +1,58 @@
+"""What a coarse registration returns."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from ..transform import Transform
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One hypothesis: a horizontal shift (map units of the reference) and its evidence."""
+
+    shift_x: float
+    shift_y: float
+    score: float  # masked NCC weighted by sqrt(overlap fraction)
+    ncc: float
+    overlap: float  # fraction of the moving grid's support that overlaps the reference
+    source: str  # which surface proposed it: "pomf" or "ncc"
+
+
+@dataclass(frozen=True)
+class CoarseResult:
+    """The coarse stage's answer and the evidence it rests on."""
+
+    T_ref_mov: Transform
+    method: str
+    confident: bool
+    confidence: float
+    cell_size: float
+    ncc: float
+    peak_ratio: float
+    overlap: float
+    psr: float
+    candidates: tuple[Candidate, ...]
+    reasons: tuple[str, ...]
+    seconds: float
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        p = self.T_ref_mov.parameters()
+        return {
+            "name": "coarse",
+            "method": self.method,
+            "seconds": round(self.seconds, 4),
+            "confident": self.confident,
+            "confidence": round(self.confidence, 4),
+            "cell_size": self.cell_size,
+            "translation": list(p.translation),
+            "ncc": round(self.ncc, 4),
+            "peak_ratio": round(self.peak_ratio, 4),
+            "peak_to_sidelobe": round(self.psr, 3),
+            "overlap_fraction": round(self.overlap, 4),
+            "reasons": list(self.reasons),
+            "candidates": [asdict(c) for c in self.candidates],
+            **self.details,
+        }

@@ -1,0 +1,269 @@
+"""Reading and writing the point and raster formats users have.
+
+One module per format family; this registry picks the format by name and content:
+
+========== ============================================ ======================
+format     files                                        module
+========== ============================================ ======================
+``las``    ``.las``, ``.laz`` (LAS 1.0-1.4, any PDRF)   :mod:`tiereg.io.las`
+``xyz``    ``.xyz``, ``.txt``, ``.csv``, ``.pts``       :mod:`tiereg.io.text`
+``ply``    ``.ply`` (ascii and binary)                  :mod:`tiereg.io.ply`
+``colmap`` ``points3D.txt``/``.bin``, a model folder    :mod:`tiereg.io.colmap`
+``bundler````bundle.out``                               :mod:`tiereg.io.bundler`
+``geotiff````.tif``, ``.tiff`` (DSM/DEM, nodata)        :mod:`tiereg.io.raster`
+========== ============================================ ======================
+
+Several LAS/LAZ files, a glob pattern or a directory of tiles open as one source.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, InputError
+from ..points import PointSet
+from .base import ArraySource, PointSource, SourceInfo, atomic_output
+
+__all__ = [
+    "FORMATS",
+    "PointSource",
+    "SourceInfo",
+    "atomic_output",
+    "detect_format",
+    "open_points",
+    "read_points",
+    "write_points",
+]
+
+
+@dataclass(frozen=True)
+class Format:
+    """One entry of the registry."""
+
+    name: str
+    suffixes: tuple[str, ...]
+    sniff: Callable[[Path, bytes], bool]
+    open: Callable[[Path], PointSource]
+    write: Callable[..., None] | None = None
+
+
+def _las_sniff(path: Path, head: bytes) -> bool:
+    return head[:4] == b"LASF"
+
+
+def _las_open(path: Path) -> PointSource:
+    from .las import LasSource
+
+    return LasSource([path])
+
+
+def _las_write(path: Path, xyz: np.ndarray, **kw: object) -> None:
+    from .las import write_las
+
+    write_las(path, xyz, **kw)  # type: ignore[arg-type]
+
+
+def _lazy(module: str, func: str) -> Callable[..., object]:
+    def call(*args: object, **kw: object) -> object:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{module}"), func)(*args, **kw)
+
+    call.__name__ = func
+    return call
+
+
+def _wrap_reader(module: str, func: str, fmt: str) -> Callable[[Path], PointSource]:
+    reader = _lazy(module, func)
+
+    def open_(path: Path) -> PointSource:
+        points = reader(path)
+        assert isinstance(points, PointSet)
+        return ArraySource(points, format=fmt)
+
+    return open_
+
+
+def _raster_open(path: Path) -> PointSource:
+    from .raster import RasterSource
+
+    return RasterSource(path)
+
+
+FORMATS: dict[str, Format] = {
+    f.name: f
+    for f in (
+        Format("las", (".las", ".laz"), _las_sniff, _las_open, _las_write),
+        Format(
+            "ply", (".ply",), _lazy("ply", "sniff_ply"), _wrap_reader("ply", "read_ply", "ply"),
+            _lazy("ply", "write_ply"),
+        ),
+        Format(
+            "colmap", (), _lazy("colmap", "sniff_colmap"),
+            _wrap_reader("colmap", "read_colmap", "colmap"),
+        ),
+        Format(
+            "bundler", (".out",), _lazy("bundler", "sniff_bundler"),
+            _wrap_reader("bundler", "read_bundler", "bundler"),
+        ),
+        Format(
+            "geotiff", (".tif", ".tiff"), lambda p, h: h[:4] in (b"II*\x00", b"MM\x00*",
+                                                               b"II+\x00", b"MM\x00+"),
+            _raster_open,
+        ),
+        Format(
+            "xyz", (".xyz", ".txt", ".csv", ".pts", ".asc"), _lazy("text", "sniff_xyz"),
+            _wrap_reader("text", "read_xyz", "xyz"), _lazy("text", "write_xyz"),
+        ),
+    )
+}
+
+_SUPPORTED = "LAS/LAZ, XYZ/TXT/CSV, PLY, COLMAP (points3D.txt/.bin or model folder), " \
+    "Bundler (.out), GeoTIFF"
+
+
+def _head(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4096)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror}); check the permissions") from None
+
+
+def detect_format(path: str | os.PathLike[str], *, format: str | None = None) -> str:
+    """The registry name of ``path``'s format, by content first and then by name."""
+    p = Path(path)
+    if format is not None:
+        if format not in FORMATS:
+            raise InputError(
+                f"unknown format {format!r}; choose one of: {', '.join(sorted(FORMATS))}"
+            )
+        return format
+    if not p.exists():
+        raise InputError(f"{p}: no such file or directory; check the path")
+    if p.is_dir():
+        if FORMATS["colmap"].sniff(p, b""):
+            return "colmap"
+        raise InputError(
+            f"{p}: is a directory without point files (.las/.laz tiles) or a COLMAP model "
+            "(points3D.bin/.txt); give the files themselves or the right folder"
+        )
+    head = _head(p)
+    if not head:
+        raise FormatError(f"{p}: the file is empty; give a file with points in it")
+    for fmt in ("las", "geotiff", "ply", "bundler", "colmap"):
+        if FORMATS[fmt].sniff(p, head):
+            return fmt
+    suffix = p.suffix.lower()
+    if suffix in (".las", ".laz"):
+        raise FormatError(
+            f"{p}: does not start with the LAS signature 'LASF' - the file is corrupt or not "
+            "LAS/LAZ; re-export it or give its real format with --moving-format/--reference-format"
+        )
+    if FORMATS["xyz"].sniff(p, head):
+        return "xyz"
+    raise FormatError(
+        f"{p}: unknown point format (suffix {suffix or 'none'!r}); tiereg reads {_SUPPORTED} - "
+        "convert the file or name its format with --moving-format/--reference-format"
+    )
+
+
+def _expand(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
+    """Turn a path, a glob pattern, a directory of tiles or a list of these into files."""
+    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    out: list[Path] = []
+    for item in items:
+        s = os.fspath(item)
+        if any(c in s for c in "*?[") and not Path(s).exists():
+            matches = sorted(glob.glob(s))
+            if not matches:
+                raise InputError(f"{s}: the pattern matches no file; check the pattern")
+            out.extend(Path(m) for m in matches)
+            continue
+        p = Path(s)
+        if p.is_dir() and not FORMATS["colmap"].sniff(p, b""):
+            tiles = sorted(
+                q for q in p.iterdir() if q.is_file() and q.suffix.lower() in (".las", ".laz")
+            )
+            if not tiles:
+                raise InputError(
+                    f"{p}: the directory holds no point files (.las/.laz) and no COLMAP model; "
+                    "point at the tiles' folder or at a file"
+                )
+            out.extend(tiles)
+            continue
+        out.append(p)
+    return out
+
+
+def open_points(
+    paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    *,
+    format: str | None = None,
+) -> PointSource:
+    """Open a point file, several tiles or a raster as a chunked :class:`PointSource`.
+
+    Nothing but headers is read here; the points come through ``source.chunks()`` or
+    ``source.read()``.
+    """
+    files = _expand(paths)
+    if len(files) > 1:
+        fmts = {detect_format(f, format=format) for f in files}
+        if fmts != {"las"}:
+            raise InputError(
+                "several inputs count as one reference only when they are all LAS/LAZ tiles; "
+                f"got formats {sorted(fmts)}"
+            )
+        from .las import LasSource
+
+        return LasSource(files)
+    fmt = detect_format(files[0], format=format)
+    return FORMATS[fmt].open(files[0])
+
+
+def read_points(
+    paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    *,
+    format: str | None = None,
+) -> PointSet:
+    """Read all points of a file (or tiles) into memory."""
+    return open_points(paths, format=format).read()
+
+
+def write_points(
+    path: str | os.PathLike[str],
+    xyz: np.ndarray,
+    *,
+    format: str | None = None,
+    like: PointSource | None = None,
+    crs_wkt: str | None = None,
+) -> None:
+    """Write points atomically; the format comes from ``format`` or the file name.
+
+    For LAS/LAZ, ``like`` (an opened LAS source) lends its header: version, point format, scale,
+    offset and CRS are kept where the new coordinates allow it.
+    """
+    p = Path(path)
+    name = format
+    if name is None:
+        suffix = p.suffix.lower()
+        name = next((f.name for f in FORMATS.values() if suffix in f.suffixes), None)
+    if name is None or FORMATS.get(name) is None or FORMATS[name].write is None:
+        writable = sorted(f"{f.name}" for f in FORMATS.values() if f.write is not None)
+        raise InputError(
+            f"{p}: cannot write points in this format; use a name ending in .las, .laz, .xyz, "
+            f".txt, .csv or .ply (writable formats: {', '.join(writable)})"
+        )
+    xyz = np.asarray(xyz, dtype=np.float64)
+    writer = FORMATS[name].write
+    assert writer is not None
+    if name == "las":
+        writer(p, xyz, like=like, crs_wkt=crs_wkt)
+    else:
+        writer(p, xyz)

@@ -1,0 +1,116 @@
+"""What every reader returns, and atomic writing.
+
+A :class:`PointSource` is an opened point file (or a set of tiles) that can tell its count, bounds
+and CRS cheaply and hand out coordinates chunk by chunk, so the dense side is never loaded whole
+when a grid or a crop is all that is needed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import OutputError
+from ..points import PointSet
+
+DEFAULT_CHUNK = 2_000_000
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """Cheap facts about a point source, known without reading all points."""
+
+    path: str
+    format: str
+    count: int
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    crs_wkt: str | None = field(default=None, repr=False)
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+class PointSource:
+    """A point file (or several) opened for reading; subclasses implement :meth:`chunks`."""
+
+    info: SourceInfo
+
+    def chunks(self, chunk_size: int = DEFAULT_CHUNK) -> Iterator[np.ndarray]:
+        """Yield ``(n, 3)`` float64 arrays until all points were given."""
+        raise NotImplementedError
+
+    def read(self) -> PointSet:
+        """All points at once (use for the sparse side or small files)."""
+        parts = list(self.chunks())
+        xyz = np.concatenate(parts) if parts else np.empty((0, 3))
+        return PointSet(xyz, source=self.info.path, crs_wkt=self.info.crs_wkt)
+
+
+class ArraySource(PointSource):
+    """A point set already in memory, seen through the :class:`PointSource` interface."""
+
+    def __init__(self, points: PointSet, *, format: str = "array", details: dict | None = None):
+        self._points = points
+        lo, hi = points.bounds if len(points) else (np.zeros(3), np.zeros(3))
+        self.info = SourceInfo(
+            path=points.source,
+            format=format,
+            count=len(points),
+            bounds=(tuple(map(float, lo)), tuple(map(float, hi))),  # type: ignore[arg-type]
+            crs_wkt=points.crs_wkt,
+            details=details or {},
+        )
+
+    def chunks(self, chunk_size: int = DEFAULT_CHUNK) -> Iterator[np.ndarray]:
+        xyz = self._points.xyz
+        for start in range(0, len(xyz), chunk_size):
+            yield xyz[start : start + chunk_size]
+
+    def read(self) -> PointSet:
+        return self._points
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
+
+    A failed write leaves no partial file behind. Raises :class:`OutputError` when the target
+    directory does not exist or cannot be written.
+    """
+    target = Path(path)
+    parent = target.parent if str(target.parent) else Path(".")
+    if target.is_dir():
+        raise OutputError(f"{target}: is a directory; give a file name for the output")
+    if not parent.is_dir():
+        raise OutputError(
+            f"{target}: the directory {parent} does not exist; create it or choose another path"
+        )
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent)
+    except OSError as exc:
+        raise OutputError(
+            f"{target}: cannot write in {parent} ({exc.strerror}); choose a writable location"
+        ) from None
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
+    """Write a small text file atomically."""
+    with atomic_output(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+Sniffer = Callable[[Path, bytes], bool]

@@ -1,0 +1,235 @@
+"""LAS/LAZ (ASPRS LAS 1.0-1.4, any point data record format) through laspy with lazrs.
+
+Reading is chunked: :class:`LasSource` reads headers on opening and points only through
+:meth:`LasSource.chunks`, one bounded chunk at a time, so memory does not grow with the file.
+Several files (tiles) form one source.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, InputError
+from .base import DEFAULT_CHUNK, PointSource, SourceInfo, atomic_output
+
+
+def _laspy():  # laspy is a hard dependency; imported lazily to keep `import tiereg` light
+    import laspy
+
+    return laspy
+
+
+def _backend():
+    laspy = _laspy()
+    for b in (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs):
+        if b.is_available():
+            return b
+    return None
+
+
+def _open_header(path: Path):
+    laspy = _laspy()
+    try:
+        with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
+            header = reader.header
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file; check the path") from None
+    except (laspy.errors.LaspyException, ValueError, EOFError, OSError) as exc:
+        raise FormatError(
+            f"{path}: not a readable LAS/LAZ file ({_short(exc)}); the file is corrupt or "
+            "truncated - re-export or re-download it"
+        ) from None
+    if header.point_count and not header.are_points_compressed:
+        need = header.offset_to_point_data + header.point_count * header.point_format.size
+        have = path.stat().st_size
+        if have < need:
+            raise FormatError(
+                f"{path}: truncated LAS file ({have} bytes, the header announces {need}); "
+                "re-export or re-download it"
+            )
+    return header
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__)[:160]
+
+
+def _crs_wkt(header) -> str | None:
+    try:
+        crs = header.parse_crs()
+    except Exception:  # a malformed CRS record must not stop a registration
+        return None
+    return crs.to_wkt() if crs is not None else None
+
+
+class LasSource(PointSource):
+    """One or several LAS/LAZ files read as one point source."""
+
+    def __init__(self, paths: Sequence[str | os.PathLike[str]]):
+        self.paths = [Path(p) for p in paths]
+        if not self.paths:
+            raise InputError("no LAS/LAZ file given")
+        self.headers = [_open_header(p) for p in self.paths]
+        count = int(sum(h.point_count for h in self.headers))
+        lo = np.min([h.mins for h in self.headers], axis=0)
+        hi = np.max([h.maxs for h in self.headers], axis=0)
+        first = self.headers[0]
+        label = str(self.paths[0]) if len(self.paths) == 1 else (
+            f"{self.paths[0].parent}/ ({len(self.paths)} tiles)"
+        )
+        self.info = SourceInfo(
+            path=label,
+            format="las",
+            count=count,
+            bounds=(tuple(map(float, lo)), tuple(map(float, hi))),  # type: ignore[arg-type]
+            crs_wkt=_crs_wkt(first),
+            details={
+                "version": str(first.version),
+                "point_format": int(first.point_format.id),
+                "scales": [float(v) for v in first.scales],
+                "offsets": [float(v) for v in first.offsets],
+                "compressed": bool(first.are_points_compressed),
+                "files": len(self.paths),
+            },
+        )
+
+    def chunks(
+        self,
+        chunk_size: int = DEFAULT_CHUNK,
+        *,
+        keep: Callable[[object], np.ndarray] | None = None,
+    ) -> Iterator[np.ndarray]:
+        """Yield ``(n, 3)`` float64 coordinates chunk by chunk.
+
+        ``keep`` optionally takes a laspy point record chunk and returns a boolean mask of the
+        points to keep (e.g. first returns only).
+        """
+        for path, arr in self._records(chunk_size):
+            xyz = np.empty((len(arr), 3))
+            xyz[:, 0] = arr.x
+            xyz[:, 1] = arr.y
+            xyz[:, 2] = arr.z
+            if keep is not None:
+                xyz = xyz[np.asarray(keep(arr), dtype=bool)]
+            yield xyz
+
+    def _records(self, chunk_size: int) -> Iterator[tuple[Path, object]]:
+        laspy = _laspy()
+        for path in self.paths:
+            try:
+                with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
+                    for arr in reader.chunk_iterator(chunk_size):
+                        yield path, arr
+            except (laspy.errors.LaspyException, ValueError, EOFError, OSError) as exc:
+                raise FormatError(
+                    f"{path}: reading the points failed ({_short(exc)}); the file is corrupt or "
+                    "truncated - re-export or re-download it"
+                ) from None
+
+
+def _fit_offsets(header, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Keep the header's scales; move the offsets only if the coordinates would overflow int32."""
+    scales = np.asarray(header.scales, dtype=np.float64)
+    offsets = np.asarray(header.offsets, dtype=np.float64)
+    limit = 2**31 - 2
+    ok = np.all(np.abs((lo - offsets) / scales) < limit) and np.all(
+        np.abs((hi - offsets) / scales) < limit
+    )
+    if not ok:
+        centre = (lo + hi) / 2
+        header.offsets = np.round(centre / scales) * scales
+        if np.any((hi - lo) / scales / 2 >= limit):
+            raise InputError(
+                "the transformed points span more than the LAS integer range at the source "
+                f"scale {scales.tolist()}; write to .ply or .xyz instead"
+            )
+
+
+def write_las(
+    path: str | os.PathLike[str],
+    xyz: np.ndarray,
+    *,
+    like: PointSource | None = None,
+    crs_wkt: str | None = None,
+) -> None:
+    """Write ``xyz`` to LAS or LAZ (by suffix), atomically.
+
+    With ``like`` (a :class:`LasSource`), its version, point format, scales and CRS are kept;
+    without it, LAS 1.4 point format 6 with 1 mm scales is written.
+    """
+    laspy = _laspy()
+    path = Path(path)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if isinstance(like, LasSource):
+        src = like.headers[0]
+        header = laspy.LasHeader(version=src.version, point_format=src.point_format)
+        header.scales = np.array(src.scales)
+        header.offsets = np.array(src.offsets)
+        for vlr in src.vlrs:
+            header.vlrs.append(vlr)
+    else:
+        header = laspy.LasHeader(version="1.4", point_format=6)
+        header.scales = np.array([0.001, 0.001, 0.001])
+        header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+        if crs_wkt:
+            import pyproj
+
+            header.add_crs(pyproj.CRS.from_wkt(crs_wkt))
+    if len(xyz):
+        _fit_offsets(header, xyz.min(axis=0), xyz.max(axis=0))
+    data = laspy.LasData(header)
+    data.x = xyz[:, 0]
+    data.y = xyz[:, 1]
+    data.z = xyz[:, 2]
+    compress = path.suffix.lower() == ".laz"
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as fh:
+            data.write(fh, do_compress=compress, laz_backend=_backend() if compress else None)
+
+
+def transform_las(
+    source: LasSource,
+    out_path: str | os.PathLike[str],
+    apply: Callable[[np.ndarray], np.ndarray],
+    *,
+    chunk_size: int = DEFAULT_CHUNK,
+    progress: Callable[[int], None] | None = None,
+) -> None:
+    """Stream every point of ``source`` through ``apply`` into a new LAS/LAZ file.
+
+    All point attributes are kept; the header keeps version, point format, scales, VLRs and CRS,
+    with offsets moved only if needed. Memory stays at one chunk. Only a single-file source can be
+    rewritten this way.
+    """
+    laspy = _laspy()
+    if len(source.paths) != 1:
+        raise InputError("apply rewrites one LAS/LAZ file at a time; run it once per tile")
+    out_path = Path(out_path)
+    src_header = source.headers[0]
+    lo, hi = np.array(src_header.mins), np.array(src_header.maxs)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    moved = apply(corners)
+    header = laspy.LasHeader(version=src_header.version, point_format=src_header.point_format)
+    header.scales = np.array(src_header.scales)
+    header.offsets = np.array(src_header.offsets)
+    for vlr in src_header.vlrs:
+        header.vlrs.append(vlr)
+    _fit_offsets(header, moved.min(axis=0), moved.max(axis=0))
+    compress = out_path.suffix.lower() == ".laz"
+    with atomic_output(out_path) as tmp:
+        with laspy.open(tmp, mode="w", header=header, do_compress=compress,
+                        laz_backend=_backend() if compress else None) as writer:
+            for _, arr in source._records(chunk_size):
+                xyz = np.column_stack([arr.x, arr.y, arr.z])
+                new = apply(xyz)
+                arr.change_scaling(scales=header.scales, offsets=header.offsets)
+                arr.x, arr.y, arr.z = new[:, 0], new[:, 1], new[:, 2]
+                writer.write_points(arr)
+                if progress is not None:
+                    progress(len(arr))

@@ -1,0 +1,77 @@
+"""Point sets: the (N, 3) float64 coordinates tiereg works on, and where they came from."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+
+
+@dataclass(frozen=True, eq=False)
+class PointSet:
+    """Coordinates ``xyz`` (N, 3) float64 in the file's own units and CRS.
+
+    ``source`` names the origin (a path or ``"<array>"``) so that errors can point at it;
+    ``crs_wkt`` is the coordinate reference system when the file carried one.
+    """
+
+    xyz: np.ndarray = field(repr=False)
+    source: str = "<array>"
+    crs_wkt: str | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        xyz = np.asarray(self.xyz, dtype=np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise InputError(
+                f"{self.source}: points must be an (N, 3) array of x, y, z, got shape {xyz.shape}"
+            )
+        if not xyz.flags.c_contiguous or xyz is self.xyz:
+            xyz = np.ascontiguousarray(xyz).copy()
+        xyz.setflags(write=False)
+        object.__setattr__(self, "xyz", xyz)
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(min xyz, max xyz)``."""
+        return self.xyz.min(axis=0), self.xyz.max(axis=0)
+
+
+def validate_points(points: PointSet, *, min_count: int, role: str) -> None:
+    """Reject point sets that no registration can use, naming the file and the fix.
+
+    Checks: enough points, all coordinates finite, and a horizontal spread that is neither a
+    single position nor a line (a registration needs an areal footprint).
+    """
+    n = len(points)
+    src = points.source
+    if n == 0:
+        raise InputError(f"{src}: the {role} point set is empty; give a file with points in it")
+    if n < min_count:
+        raise InputError(
+            f"{src}: the {role} side has {n} points, a registration needs at least {min_count}; "
+            "give more points (a denser or larger tie-point set)"
+        )
+    finite = np.isfinite(points.xyz).all(axis=1)
+    if not finite.all():
+        bad = int((~finite).sum())
+        raise InputError(
+            f"{src}: {bad} of {n} points have NaN or infinite coordinates; "
+            "remove them or fix the export"
+        )
+    xy = points.xyz[:, :2] - points.xyz[:, :2].mean(axis=0)
+    sv = np.linalg.svd(xy, compute_uv=False) / np.sqrt(n)
+    if sv[0] == 0:
+        raise InputError(
+            f"{src}: all {role} points share one horizontal position; "
+            "a registration needs points spread over an area"
+        )
+    if sv[1] <= 1e-6 * sv[0]:
+        raise InputError(
+            f"{src}: the {role} points lie on a line in plan view; "
+            "a registration needs points spread over an area, not a profile"
+        )
