@@ -169,6 +169,7 @@ class Transform:
         omega = float(np.arctan2(r[2, 1], r[2, 2]))
         kappa = float(np.arctan2(r[1, 0], r[0, 0]))
         t = self.matrix[:3, 3]
+        omega, phi, kappa = (a + 0.0 for a in (omega, phi, kappa))  # no negative zeros
         return Helmert7(self.scale, omega, phi, kappa, (float(t[0]), float(t[1]), float(t[2])))
 
     # -- algebra --------------------------------------------------------------------------

@@ -39,7 +39,6 @@ class CoarseResult:
     details: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        p = self.T_ref_mov.parameters()
         return {
             "name": "coarse",
             "method": self.method,
@@ -47,7 +46,7 @@ class CoarseResult:
             "confident": self.confident,
             "confidence": round(self.confidence, 4),
             "cell_size": self.cell_size,
-            "translation": list(p.translation),
+            "T_ref_mov": self.T_ref_mov.matrix.tolist(),
             "ncc": round(self.ncc, 4),
             "peak_ratio": round(self.peak_ratio, 4),
             "peak_to_sidelobe": round(self.psr, 3),

@@ -10,14 +10,14 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import OutputError
+from ..errors import InputError, OutputError
 from ..points import PointSet
 
 DEFAULT_CHUNK = 2_000_000
@@ -111,6 +111,44 @@ def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
     """Write a small text file atomically."""
     with atomic_output(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def read_bytes(path: Path) -> bytes:
+    """The whole file, or :class:`InputError` naming it when it cannot be read."""
+    try:
+        return Path(path).read_bytes()
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a directory; give the point file itself") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror}); check the path") from None
+
+
+def format_rows(xyz: np.ndarray, *, sep: str = " ", prefix: Iterable[str] | None = None) -> str:
+    """``x y z`` lines (newline-terminated) in the shortest round-trip decimal form."""
+    if len(xyz) == 0:
+        return ""
+    it = iter(map(repr, np.asarray(xyz, dtype=np.float64).ravel().tolist()))
+    rows: Iterable[str] = map(sep.join, zip(it, it, it))
+    if prefix is not None:
+        rows = map(sep.join, zip(prefix, rows))
+    return "\n".join(rows) + "\n"
+
+
+def check_xyz(path: str | os.PathLike[str], xyz: np.ndarray) -> np.ndarray:
+    arr = np.asarray(xyz, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(
+            f"{path}: points to write must be an (N, 3) array of x, y, z, got shape {arr.shape}"
+        )
+    return arr
+
+
+def freeze_arrays(obj: object, *names: str) -> None:
+    """Store ``obj``'s array fields as read-only ``(M, 3)`` float64 (for frozen dataclasses)."""
+    for name in names:
+        arr = np.array(getattr(obj, name), dtype=np.float64).reshape(-1, 3)
+        arr.setflags(write=False)
+        object.__setattr__(obj, name, arr)
 
 
 Sniffer = Callable[[Path, bytes], bool]

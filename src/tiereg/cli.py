@@ -1,0 +1,285 @@
+"""The ``tiereg`` command line: a thin layer over the library.
+
+Exit codes: 0 registered and confident; 3 ran to the end without a reliable registration
+(RESULT.json still written, ``"confident": false``); 2 bad usage or input (one line on stderr);
+anything else is a bug.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from . import __version__
+from .errors import InputError, TieregError
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_NOT_CONFIDENT = 0, 2, 3
+log = logging.getLogger("tiereg")
+
+EXAMPLES = {
+    "register": """examples:
+  tiereg register tiepoints.txt lidar.laz -o RESULT.json
+  tiereg register sparse/0 tiles/ -o RESULT.json --output-points tie_in_lidar_frame.laz
+  tiereg register points3D.txt 'tiles/*.laz' -o RESULT.json --cell-size 40 -q""",
+    "apply": """examples:
+  tiereg apply RESULT.json tiepoints.txt tiepoints_registered.txt
+  tiereg apply RESULT.json model.ply model_georef.ply
+  tiereg apply --inverse RESULT.json lidar.laz lidar_in_model_frame.laz
+  tiereg apply matrix.txt dsm.tif dsm_moved.tif      (16 numbers: PDAL/CloudCompare matrix)""",
+    "grid": """examples:
+  tiereg grid lidar.laz dsm.tif --cell-size 1 --stat max
+  tiereg grid 'tiles/*.laz' dem.tif --cell-size 2 --stat min""",
+    "info": """examples:
+  tiereg info lidar.laz
+  tiereg info sparse/0 --json""",
+    "demo": """examples:
+  tiereg demo
+  tiereg demo --out /tmp/tiereg-demo --seed 3""",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (exit code 2)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _progress_factory(quiet: bool):
+    if quiet or not sys.stderr.isatty():
+        return None
+    from tqdm import tqdm
+
+    def make(desc: str, total: int):
+        return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False,
+                    file=sys.stderr, dynamic_ncols=True)
+
+    return make
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true", help="print errors only, no progress")
+    g.add_argument("-v", "--verbose", action="count", default=0, help="more detail (-vv: debug)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .coarse import METHODS as COARSE
+    from .pipeline import FINE_METHODS
+
+    parser = _Parser(
+        prog="tiereg",
+        description="Co-register photogrammetric tie points (moving) with airborne lidar "
+                    "(reference), with no initial guess.",
+        epilog="Run 'tiereg COMMAND --help' for a command's options and examples.",
+    )
+    parser.add_argument("--version", action="version", version=f"tiereg {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    def add(name: str, help_: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_, epilog=EXAMPLES[name],
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        _add_common(p)
+        return p
+
+    p = add("register", "Register MOVING points (tie points) to a REFERENCE (lidar or DSM).")
+    p.add_argument("moving", metavar="MOVING", help="tie points: XYZ/CSV, PLY, LAS/LAZ, COLMAP "
+                   "points3D.txt/.bin or model folder, Bundler .out")
+    p.add_argument("reference", metavar="REFERENCE", nargs="+",
+                   help="lidar LAS/LAZ file(s), a folder or glob of tiles, or a GeoTIFF DSM")
+    p.add_argument("-o", "--output", required=True, metavar="RESULT.json",
+                   help="where to write the result")
+    p.add_argument("--coarse", choices=COARSE, default="auto", help="coarse method (default auto)")
+    p.add_argument("--fine", choices=FINE_METHODS, default="auto", help="fine method")
+    p.add_argument("--cell-size", type=float, metavar="M",
+                   help="grid cell in reference units (default: from the tie-point density)")
+    p.add_argument("--output-points", metavar="PATH",
+                   help="also write the moving points in the reference frame (format by suffix)")
+    p.add_argument("--moving-format", metavar="FMT", help="override format detection")
+    p.add_argument("--reference-format", metavar="FMT", help="override format detection")
+    p.add_argument("--seed", type=int, default=0, help="random seed (for reproducible sampling)")
+
+    p = add("apply", "Apply a transform (RESULT.json or a 4x4 matrix file) to a point file or DSM.")
+    p.add_argument("transform", metavar="TRANSFORM", help="RESULT.json, JSON with 'matrix', or "
+                   "a text file of 16 numbers")
+    p.add_argument("input", metavar="IN", help="points (any readable format) or a GeoTIFF DSM")
+    p.add_argument("output", metavar="OUT", help="output; LAS/LAZ keeps all point attributes")
+    p.add_argument("--inverse", action="store_true",
+                   help="apply the inverse (reference frame -> moving frame)")
+    p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
+
+    p = add("grid", "Rasterize points into a GeoTIFF (streaming; memory follows the grid).")
+    p.add_argument("input", metavar="POINTS", nargs="+", help="point file(s), folder or glob")
+    p.add_argument("output", metavar="OUT.tif")
+    p.add_argument("--cell-size", type=float, metavar="M",
+                   help="cell size in file units (default: about 4 points per cell)")
+    p.add_argument("--stat", choices=("mean", "min", "max", "median", "count"), default="mean")
+    p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
+
+    p = add("info", "Describe a point file, tile set or DSM: format, count, extent, CRS, density.")
+    p.add_argument("input", metavar="FILE", nargs="+")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
+
+    p = add("demo", "Register tie points made from the shipped lidar sample and compare with "
+                    "the truth.")
+    p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder")
+    p.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    level = logging.ERROR if args.quiet else (
+        logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="tiereg: %(message)s", stream=sys.stderr)
+
+
+def _summary(result) -> str:
+    p = result.T_ref_mov.parameters()
+    q = result.quality
+    lines = [
+        f"confident:   {'yes' if result.confident else 'NO'} (confidence {result.confidence:.2f})",
+        f"translation: {p.translation[0]:.3f} {p.translation[1]:.3f} {p.translation[2]:.3f} "
+        f"({result.inputs.units})",
+        f"scale {p.scale:.6f}, kappa {p.to_dict()['kappa_deg']:.3f} deg, "
+        f"cell {result.cell_size:g}",
+    ]
+    if q.n_used:
+        lines.append(f"height residuals at {q.n_used}/{q.n_moving} points: median {q.median_dz:.3f}"
+                     f", NMAD {q.nmad_dz:.3f}, RMSE {q.rmse_z:.3f}")
+    lines.extend(f"note:        {r}" for r in result.reasons)
+    return "\n".join(lines)
+
+
+def _cmd_register(args: argparse.Namespace) -> int:
+    from .io import atomic_output, write_points
+    from .io.base import write_text_atomic
+    from .pipeline import register
+
+    out = Path(args.output)
+    with atomic_output(out):  # fail early, before any work, if the output cannot be written
+        pass
+    result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
+                      cell_size=args.cell_size, moving_format=args.moving_format,
+                      reference_format=args.reference_format,
+                      progress=_progress_factory(args.quiet))
+    if args.output_points:
+        from .io import read_points
+
+        moving = read_points(args.moving, format=args.moving_format)
+        write_points(args.output_points, result.T_ref_mov.apply(moving.xyz))
+    write_text_atomic(out, result.to_json() + "\n")
+    if not args.quiet:
+        print(_summary(result))
+        print(f"result:      {out}")
+    return EXIT_OK if result.confident else EXIT_NOT_CONFIDENT
+
+
+def _load_transform(path: str):
+    from .transform import Transform
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such transform file; give a RESULT.json or a matrix file")
+    text = p.read_text(encoding="utf-8", errors="replace")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError:
+        return Transform.from_text(text)
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: a transform JSON must be an object with 'T_ref_mov' or 'matrix'")
+    try:
+        return Transform.from_dict(data)
+    except InputError as exc:
+        raise InputError(f"{p}: {exc}") from None
+
+
+def _cmd_apply(args: argparse.Namespace) -> int:
+    from .files import apply_to_file
+
+    T = _load_transform(args.transform)
+    if args.inverse:
+        T = T.inverse
+    apply_to_file(T, args.input, args.output, format=args.format,
+                  progress=_progress_factory(args.quiet))
+    if not args.quiet:
+        print(f"wrote {args.output}")
+    return EXIT_OK
+
+
+def _cmd_grid(args: argparse.Namespace) -> int:
+    from .files import grid_to_geotiff
+
+    spec = grid_to_geotiff(args.input, args.output, cell_size=args.cell_size, stat=args.stat,
+                           format=args.format, progress=_progress_factory(args.quiet))
+    if not args.quiet:
+        print(f"wrote {args.output}: {spec.shape[0]} rows x {spec.shape[1]} cols, "
+              f"cell {spec.cell_size:g}")
+    return EXIT_OK
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from .files import describe
+
+    info = describe(args.input, format=args.format)
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        for k, v in info.items():
+            print(f"{k + ':':<22}{v}")
+    return EXIT_OK
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    outcome = run_demo(args.out, seed=args.seed, progress=_progress_factory(args.quiet))
+    r = outcome.result
+    t_true = outcome.T_ref_mov_true.translation
+    t_rec = r.T_ref_mov.translation
+    print("tiereg demo: Autzen 2010 lidar (110,000 points, feet) and 1,500 tie points made from "
+          "it with a known shift")
+    print(f"{'':12}{'x':>14}{'y':>14}{'z':>12}")
+    print(f"{'truth':12}{t_true[0]:14.3f}{t_true[1]:14.3f}{t_true[2]:12.3f}")
+    print(f"{'recovered':12}{t_rec[0]:14.3f}{t_rec[1]:14.3f}{t_rec[2]:12.3f}")
+    e = outcome.error
+    print(f"{'error':12}{e[0]:14.3f}{e[1]:14.3f}{e[2]:12.3f}   "
+          f"(horizontal {outcome.error_cells:.3f} cell of {r.cell_size:g} ft)")
+    print(_summary(r))
+    print(f"wrote {Path(args.out) / 'RESULT.json'}, tiepoints.xyz, truth.json")
+    return EXIT_OK if r.confident else EXIT_NOT_CONFIDENT
+
+
+COMMANDS = {"register": _cmd_register, "apply": _cmd_apply, "grid": _cmd_grid,
+            "info": _cmd_info, "demo": _cmd_demo}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return EXIT_BAD_INPUT
+    _setup_logging(args)
+    try:
+        return COMMANDS[args.command](args)
+    except TieregError as exc:
+        print(f"tiereg {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("tiereg: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into e.g. `head`: not an error of ours
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""File-level operations behind ``tiereg apply``, ``tiereg grid`` and ``tiereg info``."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .grid import GridSpec, _nice, fill_normalized, rasterize
+from .io import open_points, write_points
+from .io.las import LasSource, transform_las
+from .io.raster import RasterSource, write_geotiff
+from .pipeline import ProgressFactory, _no_progress, _units
+from .transform import Transform
+
+PathsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+
+
+def _check_not_same(src: PathsLike, out: str | os.PathLike[str]) -> None:
+    srcs = [src] if isinstance(src, (str, os.PathLike)) else list(src)
+    for s in srcs:
+        if Path(s).exists() and Path(out).exists() and Path(s).resolve() == Path(out).resolve():
+            raise InputError(f"{out}: the output would overwrite the input; "
+                             "choose another output name")
+
+
+def apply_to_file(
+    T: Transform,
+    source_path: str | os.PathLike[str],
+    out_path: str | os.PathLike[str],
+    *,
+    format: str | None = None,
+    progress: ProgressFactory | None = None,
+) -> None:
+    """Transform a point file or a DSM into ``out_path``.
+
+    LAS/LAZ to LAS/LAZ streams chunk by chunk and keeps every point attribute. A GeoTIFF DSM is
+    transformed through its cell centres and re-gridded at ``scale x`` its cell size (to a GeoTIFF
+    output) or written as points (to a point format).
+    """
+    progress = progress or _no_progress
+    _check_not_same(source_path, out_path)
+    src = open_points(source_path, format=format)
+    out = Path(out_path)
+    suffix = out.suffix.lower()
+    if isinstance(src, LasSource) and suffix in (".las", ".laz"):
+        bar = progress(f"transforming {Path(source_path).name}", src.info.count)
+        try:
+            transform_las(src, out, T.apply, progress=bar.update)
+        finally:
+            bar.close()
+        return
+    if suffix in (".tif", ".tiff"):
+        if not isinstance(src, RasterSource):
+            raise InputError(f"{out}: GeoTIFF output is for DSM inputs; to grid points use "
+                             "'tiereg grid' after 'tiereg apply'")
+        _apply_to_raster(T, src, out)
+        return
+    pts = src.read()
+    write_points(out, T.apply(pts.xyz), like=src, crs_wkt=src.info.crs_wkt)
+
+
+def _apply_to_raster(T: Transform, src: RasterSource, out: Path) -> None:
+    cell = float(src.info.details["cell_size"][0]) * T.scale
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for chunk in src.chunks():  # first pass: the footprint after the transform
+        moved = T.apply(chunk)
+        lo, hi = np.minimum(lo, moved[:, :2].min(0)), np.maximum(hi, moved[:, :2].max(0))
+    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], cell)
+    grid = rasterize((T.apply(c) for c in src.chunks()), spec, stats=("mean",))
+    # a rotation leaves single empty cells between moved centres: fill those, not the outside
+    filled, support = fill_normalized(grid["mean"], grid.mask, sigma_cells=0.7, min_support=0.5)
+    values = np.where(grid.mask, grid["mean"], np.where(support, filled, np.nan))
+    write_geotiff(out, values, spec, crs_wkt=src.info.crs_wkt)
+
+
+def grid_to_geotiff(
+    paths: PathsLike,
+    out_path: str | os.PathLike[str],
+    *,
+    cell_size: float | None = None,
+    stat: str = "mean",
+    format: str | None = None,
+    progress: ProgressFactory | None = None,
+) -> GridSpec:
+    """Rasterize points into a GeoTIFF in one streaming pass; returns the grid spec."""
+    progress = progress or _no_progress
+    _check_not_same(paths, out_path)
+    src = open_points(paths, format=format)
+    if src.info.count == 0:
+        raise InputError(f"{src.info.path}: the point set is empty; nothing to grid")
+    assert src.info.bounds is not None
+    (x0, y0, _), (x1, y1, _) = src.info.bounds
+    if cell_size is None:
+        area = max((x1 - x0) * (y1 - y0), 1e-12)
+        cell_size = _nice(math.sqrt(4.0 * area / src.info.count))
+    spec = GridSpec.from_bounds(x0, y0, x1, y1, cell_size)
+    bar = progress(f"gridding {Path(src.info.path).name}", src.info.count)
+    try:
+        grid = rasterize(src.chunks(), spec, stats=(stat,), progress=bar.update)
+    finally:
+        bar.close()
+    values = grid.count.astype(np.float64) if stat == "count" else grid[stat]
+    write_geotiff(out_path, values, spec, crs_wkt=src.info.crs_wkt)
+    return spec
+
+
+def describe(paths: PathsLike, *, format: str | None = None) -> dict[str, Any]:
+    """Facts about a point file, tile set or DSM, read from headers where possible."""
+    src = open_points(paths, format=format)
+    info = src.info
+    out: dict[str, Any] = {"path": info.path, "format": info.format, "points": info.count}
+    if info.bounds is not None:
+        lo, hi = info.bounds
+        out["x_range"] = f"{lo[0]:.3f} .. {hi[0]:.3f}"
+        out["y_range"] = f"{lo[1]:.3f} .. {hi[1]:.3f}"
+        out["z_range"] = f"{lo[2]:.3f} .. {hi[2]:.3f}"
+        area = (hi[0] - lo[0]) * (hi[1] - lo[1])
+        if area > 0 and info.format != "geotiff":
+            out["density_per_unit2"] = round(info.count / area, 6)
+            out["suggested_cell_size"] = _nice(math.sqrt(0.64 * area / max(info.count, 1)))
+    out["crs"] = _crs_label(info.crs_wkt)
+    out["units"] = _units(info.crs_wkt)
+    out.update({k: v for k, v in info.details.items()})
+    return out
+
+
+def _crs_label(wkt: str | None) -> str | None:
+    if not wkt:
+        return None
+    try:
+        import pyproj
+
+        crs = pyproj.CRS.from_wkt(wkt)
+        epsg = crs.to_epsg()
+        return f"{crs.name} (EPSG:{epsg})" if epsg else crs.name
+    except Exception:
+        return "unparsed CRS"

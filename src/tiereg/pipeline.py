@@ -1,0 +1,335 @@
+"""The end-to-end registration: read -> grid -> coarse -> (fine) -> quality.
+
+``register(moving, reference)`` is the one entry point; the command line is a thin layer on it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from . import __version__
+from .coarse import METHODS as COARSE_METHODS
+from .coarse import CoarseResult, register_translation
+from .coarse.refine import SurfaceSampler
+from .errors import InputError
+from .grid import Grid, GridAccumulator, GridSpec, cell_size_from_density
+from .io import PointSource, open_points
+from .io.base import ArraySource
+from .points import PointSet, validate_points
+from .quality import HeightStats
+from .transform import Transform
+
+FINE_METHODS = ("auto", "none")
+MIN_MOVING_POINTS = 30
+FINE_GRID_FACTOR = 8  # the refinement grid is at most this much finer than the coarse grid
+MAX_FINE_CELLS = 25_000_000
+
+PointsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | PointSet | np.ndarray
+
+
+class ProgressBar(Protocol):
+    def update(self, n: int) -> object: ...
+    def close(self) -> object: ...
+
+
+ProgressFactory = Callable[[str, int], ProgressBar]
+
+
+class _NoProgress:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _no_progress(desc: str, total: int) -> ProgressBar:
+    return _NoProgress()
+
+
+@dataclass(frozen=True)
+class Inputs:
+    moving: str
+    reference: str
+    moving_format: str
+    reference_format: str
+    n_reference: int
+    crs_wkt: str | None = field(default=None, repr=False)
+    units: str = "unknown"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "moving": self.moving,
+            "reference": self.reference,
+            "moving_format": self.moving_format,
+            "reference_format": self.reference_format,
+            "n_reference": self.n_reference,
+            "units": self.units,
+            "crs": _crs_name(self.crs_wkt),
+        }
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Everything a registration found; ``to_dict()`` is RESULT.json."""
+
+    T_ref_mov: Transform
+    confident: bool
+    confidence: float
+    coarse: CoarseResult | None
+    quality_before: HeightStats
+    quality: HeightStats
+    inputs: Inputs
+    cell_size: float
+    seconds: float
+    reasons: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        stages: list[dict[str, Any]] = []
+        if self.coarse is not None:
+            stages.append(self.coarse.to_dict())
+        stages.append({"name": "fine", "method": "none", "seconds": 0.0,
+                       "note": "no fine stage in this version; the coarse stage refines to "
+                               "sub-cell level"})
+        p = self.T_ref_mov.parameters().to_dict()
+        return {
+            "tiereg_version": __version__,
+            "T_ref_mov": self.T_ref_mov.matrix.tolist(),
+            "parameters": p,
+            "precision": {"scale": None, "omega_deg": None, "phi_deg": None, "kappa_deg": None,
+                          "translation": None},
+            "confident": self.confident,
+            "confidence": round(self.confidence, 4),
+            "reasons": list(self.reasons),
+            "cell_size": self.cell_size,
+            "seconds": round(self.seconds, 3),
+            "stages": stages,
+            "quality": self.quality.to_dict(),
+            "quality_before": self.quality_before.to_dict(),
+            "inputs": self.inputs.to_dict(),
+        }
+
+    def to_json(self) -> str:
+        return dumps_json(self.to_dict())
+
+
+def dumps_json(data: dict[str, Any]) -> str:
+    """Indented JSON with lists of numbers (matrix rows, vectors) kept on one line."""
+    import json
+    import re
+
+    text = json.dumps(data, indent=2, allow_nan=False, default=_json_default)
+    number_list = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
+    return number_list.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(","))
+                           + "]", text)
+
+
+def _json_default(o: object) -> object:
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def _crs_name(wkt: str | None) -> str | None:
+    if not wkt:
+        return None
+    try:
+        import pyproj
+
+        return pyproj.CRS.from_wkt(wkt).name
+    except Exception:
+        return None
+
+
+def _units(wkt: str | None) -> str:
+    if not wkt:
+        return "unknown"
+    try:
+        import pyproj
+
+        crs = pyproj.CRS.from_wkt(wkt)
+        return crs.axis_info[0].unit_name if crs.axis_info else "unknown"
+    except Exception:
+        return "unknown"
+
+
+def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> PointSource:
+    if isinstance(points, PointSource):
+        return points
+    if isinstance(points, PointSet):
+        return ArraySource(points)
+    if isinstance(points, np.ndarray):
+        return ArraySource(PointSet(points, source=f"<{role} array>"))
+    return open_points(points, format=fmt)
+
+
+def grid_reference(
+    source: PointSource,
+    origin: np.ndarray,
+    cell_size: float,
+    *,
+    fine_factor: int = FINE_GRID_FACTOR,
+    progress: ProgressFactory = _no_progress,
+) -> tuple[Grid, Grid | None]:
+    """Grid the reference in one streaming pass: the coarse grid and a finer one for refinement.
+
+    The finer grid's cell is ``cell_size / fine_factor``, but never below the reference's mean
+    point spacing (cells would be mostly empty). Coordinates are reduced by ``origin`` before
+    gridding, so the grids live in local coordinates.
+    """
+    if source.info.count == 0:
+        raise InputError(f"{source.info.path}: the reference point set is empty; "
+                         "give a file with points in it")
+    assert source.info.bounds is not None
+    lo = np.asarray(source.info.bounds[0]) - origin
+    hi = np.asarray(source.info.bounds[1]) - origin
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise InputError(f"{source.info.path}: the header bounds are not finite; the file is "
+                         "corrupt - re-export it")
+    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], cell_size)
+    acc = GridAccumulator(spec, stats=("mean",))
+    fine_acc = None
+    area = max(float((hi[0] - lo[0]) * (hi[1] - lo[1])), 1e-12)
+    spacing = math.sqrt(area / source.info.count)
+    fine_cell = max(cell_size / fine_factor, spacing)
+    fine_cells = math.ceil((hi[0] - lo[0]) / fine_cell + 2) * math.ceil(
+        (hi[1] - lo[1]) / fine_cell + 2)
+    if fine_cell < cell_size / 1.5 and fine_cells <= MAX_FINE_CELLS:
+        fine_acc = GridAccumulator(
+            GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], fine_cell), stats=("mean",))
+    bar = progress(f"gridding {os.path.basename(source.info.path)}", source.info.count)
+    try:
+        for chunk in source.chunks():
+            local = chunk - origin
+            acc.add(local)
+            if fine_acc is not None:
+                fine_acc.add(local)
+            bar.update(len(chunk))
+    finally:
+        bar.close()
+    grid = acc.result(crs_wkt=source.info.crs_wkt)
+    if not grid.mask.any():
+        raise InputError(f"{source.info.path}: no reference point falls inside its own header "
+                         "bounds; the header is wrong - re-export the file")
+    return grid, (fine_acc.result() if fine_acc is not None else None)
+
+
+def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Transform:
+    """``T_ref_mov`` in file coordinates from one between the two local (centred) frames."""
+    return Transform.from_translation(o_ref) @ T_local @ Transform.from_translation(-o_mov)
+
+
+def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
+    z, _, _, ok = sampler.sample(xyz_ref[:, 0], xyz_ref[:, 1])
+    return HeightStats.from_dz((z - xyz_ref[:, 2])[ok], len(xyz_ref))
+
+
+def register(
+    moving: PointsLike | PointSource,
+    reference: PointsLike | PointSource,
+    *,
+    coarse: str = "auto",
+    fine: str = "auto",
+    cell_size: float | None = None,
+    moving_format: str | None = None,
+    reference_format: str | None = None,
+    progress: ProgressFactory | None = None,
+) -> RegistrationResult:
+    """Register the sparse ``moving`` points (tie points) to the dense ``reference`` (lidar).
+
+    Parameters
+    ----------
+    moving, reference
+        Paths (any supported format; several LAS/LAZ tiles, a glob or a folder for the reference),
+        a :class:`~tiereg.PointSet`, or an ``(N, 3)`` float64 array.
+    coarse
+        ``"auto"`` or ``"pomf"`` (translation search), or ``"none"`` (keep the input position).
+    fine
+        ``"auto"`` or ``"none"``; no fine stage exists in this version.
+    cell_size
+        Grid cell in reference units; by default derived from the moving points' density.
+
+    Returns
+    -------
+    RegistrationResult
+        ``T_ref_mov`` maps moving points into the reference frame; ``confident`` says whether the
+        answer can be trusted.
+    """
+    t0 = time.perf_counter()
+    progress = progress or _no_progress
+    if coarse not in COARSE_METHODS:
+        raise InputError(f"unknown coarse method {coarse!r}; choose one of {COARSE_METHODS}")
+    if fine not in FINE_METHODS:
+        raise InputError(
+            f"fine method {fine!r} is not available in tiereg {__version__}; "
+            f"choose one of {FINE_METHODS}"
+        )
+    mov_src = _as_source(moving, moving_format, "moving")
+    ref_src = _as_source(reference, reference_format, "reference")
+    mov = mov_src.read()
+    validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
+
+    o_mov = np.round(mov.xyz.mean(axis=0))
+    assert ref_src.info.bounds is not None
+    o_ref = np.round((np.asarray(ref_src.info.bounds[0]) + np.asarray(ref_src.info.bounds[1])) / 2)
+    if not np.all(np.isfinite(o_ref)):
+        raise InputError(f"{ref_src.info.path}: the reference bounds are not finite; "
+                         "the file is corrupt - re-export it")
+    mov_local = mov.xyz - o_mov
+    if cell_size is None:
+        cell_size = cell_size_from_density(mov_local)
+    elif not (cell_size > 0 and math.isfinite(cell_size)):
+        raise InputError(f"--cell-size must be a positive number, got {cell_size}")
+
+    grid, fine_grid = grid_reference(ref_src, o_ref, cell_size, progress=progress)
+    sampler = SurfaceSampler.from_grid(fine_grid or grid)
+
+    T_in = Transform.from_translation(o_ref).inverse  # reference -> local
+    T_mov_local = Transform.from_translation(o_mov)  # local moving -> moving
+    before = _height_stats((T_in @ T_mov_local).apply(mov_local), sampler)
+
+    coarse_result: CoarseResult | None = None
+    reasons: list[str] = []
+    if coarse == "none":
+        T_local = T_in @ T_mov_local
+        confident, confidence = before.overlap_fraction > 0.3, 0.0
+        reasons.append("no coarse registration was asked for (--coarse none)")
+    else:
+        coarse_result = register_translation(mov_local, grid, reference_fine=fine_grid)
+        T_local = coarse_result.T_ref_mov
+        coarse_result = replace(coarse_result, T_ref_mov=_to_world(T_local, o_ref, o_mov))
+        confident, confidence = coarse_result.confident, coarse_result.confidence
+        reasons.extend(coarse_result.reasons)
+
+    after = _height_stats(T_local.apply(mov_local), sampler)
+    T_ref_mov = _to_world(T_local, o_ref, o_mov)
+    inputs = Inputs(
+        moving=mov_src.info.path,
+        reference=ref_src.info.path,
+        moving_format=mov_src.info.format,
+        reference_format=ref_src.info.format,
+        n_reference=ref_src.info.count,
+        crs_wkt=ref_src.info.crs_wkt,
+        units=_units(ref_src.info.crs_wkt),
+    )
+    return RegistrationResult(
+        T_ref_mov=T_ref_mov,
+        confident=bool(confident),
+        confidence=float(confidence),
+        coarse=coarse_result,
+        quality_before=before,
+        quality=after,
+        inputs=inputs,
+        cell_size=float(cell_size),
+        seconds=time.perf_counter() - t0,
+        reasons=tuple(reasons),
+    )
