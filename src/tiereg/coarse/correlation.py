@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from scipy import fft
+from scipy import fft, ndimage
 
 _EPS = 100 * np.finfo(np.float64).eps
 
@@ -133,6 +133,19 @@ def local_maxima(
             -np.inf
         )
     return peaks
+
+
+def second_peak(surface: np.ndarray, best: tuple[int, int], *, exclusion: int = 2) -> float:
+    """The highest *local maximum* more than ``exclusion`` cells (Chebyshev) from ``best``.
+
+    Only true local maxima count, so the shoulder of a broad main peak is not mistaken for a
+    rival. Returns ``-inf`` when there is none.
+    """
+    s = np.where(np.isfinite(surface), surface, -np.inf)
+    is_max = (s == ndimage.maximum_filter(s, size=3, mode="constant", cval=-np.inf)) & np.isfinite(s)
+    rows, cols = np.nonzero(is_max)
+    far = np.maximum(np.abs(rows - best[0]), np.abs(cols - best[1])) > exclusion
+    return float(s[rows[far], cols[far]].max()) if far.any() else float("-inf")
 
 
 def subpixel_peak(surface: np.ndarray, peak: tuple[int, int]) -> tuple[float, float]:

@@ -38,7 +38,7 @@ def _open_header(path: Path):
             header = reader.header
     except FileNotFoundError:
         raise InputError(f"{path}: no such file; check the path") from None
-    except (laspy.errors.LaspyException, ValueError, EOFError, OSError) as exc:
+    except _read_errors() as exc:
         raise FormatError(
             f"{path}: not a readable LAS/LAZ file ({_short(exc)}); the file is corrupt or "
             "truncated - re-export or re-download it"
@@ -52,6 +52,20 @@ def _open_header(path: Path):
                 "re-export or re-download it"
             )
     return header
+
+
+def _read_errors() -> tuple[type[BaseException], ...]:
+    """The exceptions laspy and its LAZ backend raise on corrupt or truncated data."""
+    laspy = _laspy()
+    errors: list[type[BaseException]] = [laspy.errors.LaspyException, ValueError, EOFError,
+                                         OSError]
+    try:
+        import lazrs
+
+        errors.append(lazrs.LazrsError)
+    except (ImportError, AttributeError):
+        pass
+    return tuple(errors)
 
 
 def _short(exc: BaseException) -> str:
@@ -109,7 +123,7 @@ class LasSource(PointSource):
         ``keep`` optionally takes a laspy point record chunk and returns a boolean mask of the
         points to keep (e.g. first returns only).
         """
-        for path, arr in self._records(chunk_size):
+        for arr in self._records(chunk_size):
             xyz = np.empty((len(arr), 3))
             xyz[:, 0] = arr.x
             xyz[:, 1] = arr.y
@@ -118,18 +132,33 @@ class LasSource(PointSource):
                 xyz = xyz[np.asarray(keep(arr), dtype=bool)]
             yield xyz
 
-    def _records(self, chunk_size: int) -> Iterator[tuple[Path, object]]:
+    def _records(self, chunk_size: int) -> Iterator:
         laspy = _laspy()
         for path in self.paths:
             try:
                 with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
                     for arr in reader.chunk_iterator(chunk_size):
-                        yield path, arr
-            except (laspy.errors.LaspyException, ValueError, EOFError, OSError) as exc:
+                        yield arr
+            except _read_errors() as exc:
                 raise FormatError(
                     f"{path}: reading the points failed ({_short(exc)}); the file is corrupt or "
                     "truncated - re-export or re-download it"
                 ) from None
+
+
+def _header_like(src_header):
+    """A new header with the source's version, point format, scales, offsets and VLRs (CRS).
+
+    laspy writes LAS 1.1-1.4; a LAS 1.0 source is written as 1.1, whose records are the same.
+    """
+    laspy = _laspy()
+    version = "1.1" if str(src_header.version) == "1.0" else src_header.version
+    header = laspy.LasHeader(version=version, point_format=src_header.point_format)
+    header.scales = np.array(src_header.scales)
+    header.offsets = np.array(src_header.offsets)
+    for vlr in src_header.vlrs:
+        header.vlrs.append(vlr)
+    return header
 
 
 def _fit_offsets(header, lo: np.ndarray, hi: np.ndarray) -> None:
@@ -166,12 +195,7 @@ def write_las(
     path = Path(path)
     xyz = np.asarray(xyz, dtype=np.float64)
     if isinstance(like, LasSource):
-        src = like.headers[0]
-        header = laspy.LasHeader(version=src.version, point_format=src.point_format)
-        header.scales = np.array(src.scales)
-        header.offsets = np.array(src.offsets)
-        for vlr in src.vlrs:
-            header.vlrs.append(vlr)
+        header = _header_like(like.headers[0])
     else:
         header = laspy.LasHeader(version="1.4", point_format=6)
         header.scales = np.array([0.001, 0.001, 0.001])
@@ -215,17 +239,13 @@ def transform_las(
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])
     moved = apply(corners)
-    header = laspy.LasHeader(version=src_header.version, point_format=src_header.point_format)
-    header.scales = np.array(src_header.scales)
-    header.offsets = np.array(src_header.offsets)
-    for vlr in src_header.vlrs:
-        header.vlrs.append(vlr)
+    header = _header_like(src_header)
     _fit_offsets(header, moved.min(axis=0), moved.max(axis=0))
     compress = out_path.suffix.lower() == ".laz"
     with atomic_output(out_path) as tmp:
         with laspy.open(tmp, mode="w", header=header, do_compress=compress,
                         laz_backend=_backend() if compress else None) as writer:
-            for _, arr in source._records(chunk_size):
+            for arr in source._records(chunk_size):
                 xyz = np.column_stack([arr.x, arr.y, arr.z])
                 new = apply(xyz)
                 arr.change_scaling(scales=header.scales, offsets=header.offsets)

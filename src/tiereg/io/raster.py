@@ -121,7 +121,7 @@ def write_geotiff(
 ) -> None:
     """Write a (rows, cols) grid, NaN = no data, as a float32 (float64 if needed) GeoTIFF."""
     rasterio = _rasterio()
-    from rasterio.transform import from_origin
+    from affine import Affine
 
     values = np.asarray(values, dtype=np.float64)
     if values.shape != spec.shape:
@@ -137,7 +137,7 @@ def write_geotiff(
         "count": 1,
         "dtype": dtype,
         "nodata": nodata,
-        "transform": from_origin(spec.x0, spec.y0, spec.cell_size, spec.cell_size),
+        "transform": Affine(spec.cell_size, 0.0, spec.x0, 0.0, -spec.cell_size, spec.y0),
         "compress": "deflate",
     }
     if crs_wkt:

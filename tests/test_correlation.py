@@ -1,0 +1,87 @@
+"""Correlation kernels against slow, obvious references, and known shifts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tiereg.coarse.correlation import (
+    cross_power_correlation,
+    local_maxima,
+    masked_ncc,
+    peak_to_sidelobe,
+    shift_of_index,
+    subpixel_peak,
+)
+
+
+def slow_masked_ncc(fr, mr, fm, mm):
+    """Pearson correlation over the common valid cells at every shift, by loops."""
+    hr, wr = fr.shape
+    hm, wm = fm.shape
+    out = np.zeros((hr + hm - 1, wr + wm - 1))
+    count = np.zeros_like(out)
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            du, dv = i - (hm - 1), j - (wm - 1)
+            a, b = [], []
+            for r in range(hm):
+                for c in range(wm):
+                    rr, cc = r + du, c + dv
+                    if 0 <= rr < hr and 0 <= cc < wr and mm[r, c] and mr[rr, cc]:
+                        a.append(fr[rr, cc])
+                        b.append(fm[r, c])
+            count[i, j] = len(a)
+            if len(a) >= 3 and np.std(a) > 0 and np.std(b) > 0:
+                out[i, j] = np.corrcoef(a, b)[0, 1]
+    return out, count
+
+
+def test_masked_ncc_equals_the_slow_reference(rng):
+    fr, fm = rng.normal(size=(9, 11)), rng.normal(size=(6, 5))
+    mr, mm = rng.random((9, 11)) > 0.3, rng.random((6, 5)) > 0.4
+    ncc, n = masked_ncc(fr, mr, fm, mm)
+    ref, count = slow_masked_ncc(fr, mr, fm, mm)
+    assert np.array_equal(n, count)
+    assert np.allclose(ncc, ref, atol=1e-9)
+
+
+def test_masked_ncc_finds_a_known_shift_under_a_sparse_mask(rng):
+    ref = rng.normal(size=(60, 70))
+    mov = ref[12:42, 20:45].copy()  # moving pixel (r, c) sits at reference (r + 12, c + 20)
+    mask = rng.random(mov.shape) > 0.6  # 40 % of the moving cells known
+    ncc, _ = masked_ncc(ref, np.ones_like(ref, bool), np.where(mask, mov, 0), mask)
+    peak = np.unravel_index(np.argmax(ncc), ncc.shape)
+    assert shift_of_index(peak, mov.shape) == (12, 20)
+    assert ncc[peak] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("normalization", ["phase", "pomf", "none"])
+def test_cross_power_correlation_finds_a_known_shift(rng, normalization):
+    ref = rng.normal(size=(64, 64))
+    mov = ref[5:45, 17:57]
+    surface = cross_power_correlation(ref, mov, normalization=normalization)
+    peak = np.unravel_index(np.argmax(surface), surface.shape)
+    assert shift_of_index(peak, mov.shape) == (5, 17)
+
+
+def test_subpixel_parabola_is_exact_on_a_parabola():
+    rr, cc = np.indices((9, 9))
+    surface = -((rr - 4.3) ** 2) - 2 * (cc - 3.8) ** 2
+    r, c = subpixel_peak(surface, (4, 4))
+    assert r == pytest.approx(4.3) and c == pytest.approx(3.8)
+
+
+def test_local_maxima_are_distinct_and_ordered():
+    s = np.zeros((20, 20))
+    s[3, 3], s[3, 4], s[15, 10] = 5.0, 4.9, 3.0
+    peaks = local_maxima(s, k=2, exclusion=2)
+    assert peaks == [(3, 3), (15, 10)]
+
+
+def test_peak_to_sidelobe_separates_a_sharp_peak_from_noise(rng):
+    noise = rng.normal(size=(50, 50))
+    sharp = noise.copy()
+    sharp[25, 25] = 20.0
+    assert peak_to_sidelobe(sharp, (25, 25)) > 15
+    assert peak_to_sidelobe(noise, np.unravel_index(np.argmax(noise), noise.shape)) < 5

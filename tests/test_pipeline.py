@@ -1,0 +1,124 @@
+"""End to end: known shifts recovered, honest confidence, the RESULT.json contract."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scenes import make_scene
+
+from tiereg import InputError, PointSet, Transform
+from tiereg.demo import run_demo
+from tiereg.files import grid_to_geotiff
+from tiereg.io import write_points
+from tiereg.pipeline import register
+
+SHIFT = Transform.from_translation((-12345.6, 2345.7, -50.0))  # reference -> moving
+
+
+def horizontal_error_cells(result, scene):
+    centre = scene.tie_mov.mean(axis=0, keepdims=True)
+    err = (result.T_ref_mov.apply(centre) - scene.T_ref_mov.apply(centre))[0]
+    return np.hypot(err[0], err[1]) / result.cell_size, err
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_recovers_a_known_shift_at_projected_coordinates(seed):
+    scene = make_scene(seed=seed, T_mov_ref=SHIFT, lidar_points=200_000,
+                       block_offset=(100.0 * seed, -80.0 * seed))
+    result = register(scene.tie_mov, scene.lidar)
+    cells, err = horizontal_error_cells(result, scene)
+    assert result.confident
+    assert cells < 0.1  # sub-cell refinement: a tenth of a (20 m) cell
+    assert abs(err[2]) < 0.1  # metres; tie-point height noise is 0.3 m over 2,000 points
+    assert result.quality.nmad_dz < 0.6  # 0.3 m noise, 0.05 m lidar noise, gridding
+    assert result.quality_before.n_used == 0  # 12 km off before registration: no overlap
+
+
+def test_demo_on_real_lidar_within_a_tenth_of_a_cell(tmp_path):
+    outcome = run_demo(tmp_path)
+    assert outcome.result.confident
+    assert outcome.error_cells < 0.1
+    assert abs(outcome.error[2]) < 0.1  # feet
+    saved = json.loads((tmp_path / "RESULT.json").read_text())
+    assert np.allclose(saved["T_ref_mov"], outcome.result.T_ref_mov.matrix)
+
+
+@pytest.mark.parametrize("T_mov_ref", [
+    Transform.from_parameters(kappa=np.radians(3.0), translation=(-500.0, 300.0, 0.0)),
+    Transform.from_parameters(kappa=np.radians(30.0), translation=(-500.0, 300.0, 0.0)),
+    Transform.from_parameters(scale=1.1, translation=(-500.0, 300.0, 0.0)),
+    Transform.from_parameters(scale=1 / 0.3048, translation=(-500.0, 300.0, 0.0)),  # feet
+], ids=["kappa3", "kappa30", "scale1.1", "feet"])
+def test_rotation_or_scale_is_never_answered_confidently(T_mov_ref):
+    scene = make_scene(seed=4, T_mov_ref=T_mov_ref, lidar_points=200_000)
+    result = register(scene.tie_mov, scene.lidar)
+    assert not result.confident
+    assert result.confidence < 0.5
+    assert result.reasons
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_no_overlap_is_not_confident(seed):
+    # tie points on terrain 1.6 km beyond the lidar's edge, and from another world entirely
+    outside = make_scene(seed=seed, block_offset=(2600.0, 300.0), lidar_points=200_000)
+    assert not register(outside.tie_mov, outside.lidar).confident
+    other = make_scene(seed=seed + 50, lidar_points=1000)
+    assert not register(other.tie_mov, outside.lidar).confident
+
+
+def test_reference_as_geotiff_dsm(tmp_path):
+    scene = make_scene(seed=5, T_mov_ref=SHIFT, lidar_points=300_000)
+    write_points(tmp_path / "lidar.laz", scene.lidar)
+    grid_to_geotiff(tmp_path / "lidar.laz", tmp_path / "dsm.tif", cell_size=4.0)
+    result = register(PointSet(scene.tie_mov), tmp_path / "dsm.tif")
+    cells, err = horizontal_error_cells(result, scene)
+    assert result.confident and cells < 0.1 and abs(err[2]) < 0.15
+    assert result.inputs.reference_format == "geotiff"
+
+
+def test_result_json_follows_the_contract():
+    scene = make_scene(seed=6, T_mov_ref=SHIFT, lidar_points=100_000)
+    data = json.loads(register(scene.tie_mov, scene.lidar).to_json())
+    for key in ("tiereg_version", "T_ref_mov", "parameters", "precision", "confident",
+                "confidence", "stages", "quality", "inputs"):
+        assert key in data
+    T = np.array(data["T_ref_mov"])
+    p = data["parameters"]
+    rebuilt = Transform.from_parameters(scale=p["scale"], omega=np.radians(p["omega_deg"]),
+                                        phi=np.radians(p["phi_deg"]),
+                                        kappa=np.radians(p["kappa_deg"]),
+                                        translation=p["translation"])
+    assert np.allclose(rebuilt.matrix, T, rtol=0, atol=1e-9)
+    assert set(data["precision"]) == {"scale", "omega_deg", "phi_deg", "kappa_deg", "translation"}
+    assert data["stages"][0]["name"] == "coarse" and data["stages"][0]["method"] == "pomf"
+    assert {"n_moving", "n_used", "rmse_z", "median_dz", "nmad_dz"} <= set(data["quality"])
+    assert 0.0 <= data["confidence"] <= 1.0
+
+
+def test_coarse_none_keeps_the_input_position():
+    scene = make_scene(seed=7, lidar_points=100_000)  # already aligned
+    result = register(scene.tie_mov, scene.lidar, coarse="none")
+    assert result.T_ref_mov.isclose(Transform.identity())
+    assert result.quality.n_used == len(scene.tie_mov)
+
+
+@pytest.mark.parametrize("points, fragment", [
+    (np.zeros((0, 3)), "empty"),
+    (np.random.default_rng(0).uniform(0, 100, (10, 3)), "at least"),
+    (np.column_stack([np.arange(100.0), np.arange(100.0), np.zeros(100)]), "line"),
+    (np.ones((100, 3)), "one horizontal position"),
+    (np.vstack([np.random.default_rng(0).uniform(0, 100, (99, 3)), [[np.nan, 0, 0]]]), "NaN"),
+])
+def test_unusable_moving_points_are_rejected(points, fragment):
+    scene = make_scene(seed=0, lidar_points=10_000)
+    with pytest.raises(InputError, match=fragment):
+        register(points, scene.lidar)
+
+
+def test_unknown_methods_are_rejected():
+    with pytest.raises(InputError, match="coarse method"):
+        register(np.zeros((50, 3)), np.zeros((50, 3)), coarse="magic")
+    with pytest.raises(InputError, match="fine method"):
+        register(np.zeros((50, 3)), np.zeros((50, 3)), fine="lsm")
