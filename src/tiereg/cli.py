@@ -133,9 +133,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _setup_logging(args: argparse.Namespace) -> None:
+    """Our messages at the asked level; other libraries' only with -vv (they would repeat our
+    one-line errors in their own words)."""
     level = logging.ERROR if args.quiet else (
         logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    logging.basicConfig(level=level, format="tiereg: %(message)s", stream=sys.stderr)
+    for old in [h for h in log.handlers if getattr(h, "tiereg_cli", False)]:
+        log.removeHandler(old)  # main() may run more than once in one process
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("tiereg: %(message)s"))
+    handler.tiereg_cli = True  # type: ignore[attr-defined]
+    log.addHandler(handler)
+    log.setLevel(level)
+    log.propagate = False
+    if args.verbose >= 2:
+        logging.basicConfig(level=logging.DEBUG, stream=sys.stderr)
+    else:
+        logging.getLogger().setLevel(logging.CRITICAL + 1)
 
 
 def _summary(result) -> str:
@@ -156,13 +169,14 @@ def _summary(result) -> str:
 
 
 def _cmd_register(args: argparse.Namespace) -> int:
-    from .io import atomic_output, write_points
-    from .io.base import write_text_atomic
+    from .io import write_points
+    from .io.base import check_writable, write_text_atomic
     from .pipeline import register
 
     out = Path(args.output)
-    with atomic_output(out):  # fail early, before any work, if the output cannot be written
-        pass
+    check_writable(out)  # fail before any work if the result could not be written
+    if args.output_points:
+        check_writable(args.output_points)
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
                       cell_size=args.cell_size, moving_format=args.moving_format,
                       reference_format=args.reference_format,

@@ -75,12 +75,19 @@ class ArraySource(PointSource):
         return self._points
 
 
+def check_writable(path: str | os.PathLike[str]) -> None:
+    """Fail early, before any work, if ``path`` could not be written; creates nothing."""
+    with atomic_output(path, commit=False):
+        pass
+
+
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike[str], *, commit: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
 
     A failed write leaves no partial file behind. Raises :class:`OutputError` when the target
-    directory does not exist or cannot be written.
+    directory does not exist or cannot be written. With ``commit=False`` the temporary file is
+    always removed (a dry run that proves the location is writable).
     """
     target = Path(path)
     parent = target.parent if str(target.parent) else Path(".")
@@ -100,11 +107,11 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
-        os.replace(tmp, target)
-    except BaseException:
+        if commit:
+            os.replace(tmp, target)
+    finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        raise
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
