@@ -47,6 +47,9 @@ def test_register_writes_result_and_points(scene_files, tmp_path, capsys):
     assert code == 0
     data = json.loads(out.read_text())
     assert data["confident"] is True
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask  # like any file the user creates
     assert "confident:   yes" in stdout
     moved = read_points(tmp_path / "moved.laz").xyz
     expected = scene.T_ref_mov.apply(scene.tie_mov)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import logging
 
+from ._version import __version__
 from .errors import FormatError, InputError, OutputError, TieregError
+from .io import open_points, read_points, write_points
+from .pipeline import RegistrationResult, register
 from .points import PointSet
 from .transform import Helmert7, Transform
-
-__version__ = "0.1.0"
 
 __all__ = [
     "FormatError",
@@ -16,9 +17,14 @@ __all__ = [
     "InputError",
     "OutputError",
     "PointSet",
+    "RegistrationResult",
     "TieregError",
     "Transform",
     "__version__",
+    "open_points",
+    "read_points",
+    "register",
+    "write_points",
 ]
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from . import __version__
+from ._version import __version__
 from .errors import InputError, TieregError
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NOT_CONFIDENT = 0, 2, 3

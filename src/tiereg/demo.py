@@ -16,7 +16,8 @@ import numpy as np
 from .io import open_points
 from .io.base import write_text_atomic
 from .io.text import write_xyz
-from .pipeline import ProgressFactory, RegistrationResult, register
+from .pipeline import RegistrationResult, register
+from .progress import ProgressFactory
 from .transform import Transform
 
 N_TIE_POINTS = 1500

@@ -10,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from .crs import crs_label, crs_units
 from .errors import InputError
-from .grid import GridSpec, _nice, fill_normalized, rasterize
+from .grid import GridSpec, fill_normalized, nice_size, rasterize
 from .io import open_points, write_points
 from .io.las import LasSource, transform_las
 from .io.raster import RasterSource, write_geotiff
-from .pipeline import ProgressFactory, _no_progress, _units
+from .progress import ProgressFactory, no_progress
 from .transform import Transform
 
 PathsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
@@ -43,7 +44,7 @@ def apply_to_file(
     transformed through its cell centres and re-gridded at ``scale x`` its cell size (to a GeoTIFF
     output) or written as points (to a point format).
     """
-    progress = progress or _no_progress
+    progress = progress or no_progress
     _check_not_same(source_path, out_path)
     src = open_points(source_path, format=format)
     out = Path(out_path)
@@ -89,7 +90,7 @@ def grid_to_geotiff(
     progress: ProgressFactory | None = None,
 ) -> GridSpec:
     """Rasterize points into a GeoTIFF in one streaming pass; returns the grid spec."""
-    progress = progress or _no_progress
+    progress = progress or no_progress
     _check_not_same(paths, out_path)
     src = open_points(paths, format=format)
     if src.info.count == 0:
@@ -98,7 +99,7 @@ def grid_to_geotiff(
     (x0, y0, _), (x1, y1, _) = src.info.bounds
     if cell_size is None:
         area = max((x1 - x0) * (y1 - y0), 1e-12)
-        cell_size = _nice(math.sqrt(4.0 * area / src.info.count))
+        cell_size = nice_size(math.sqrt(4.0 * area / src.info.count))
     spec = GridSpec.from_bounds(x0, y0, x1, y1, cell_size)
     bar = progress(f"gridding {Path(src.info.path).name}", src.info.count)
     try:
@@ -123,21 +124,9 @@ def describe(paths: PathsLike, *, format: str | None = None) -> dict[str, Any]:
         area = (hi[0] - lo[0]) * (hi[1] - lo[1])
         if area > 0 and info.format != "geotiff":
             out["density_per_unit2"] = round(info.count / area, 6)
-            out["suggested_cell_size"] = _nice(math.sqrt(0.64 * area / max(info.count, 1)))
-    out["crs"] = _crs_label(info.crs_wkt)
-    out["units"] = _units(info.crs_wkt)
+            out["suggested_cell_size"] = nice_size(math.sqrt(0.64 * area / max(info.count, 1)))
+    out["crs"] = crs_label(info.crs_wkt)
+    out["units"] = crs_units(info.crs_wkt)
     out.update({k: v for k, v in info.details.items()})
     return out
 
-
-def _crs_label(wkt: str | None) -> str | None:
-    if not wkt:
-        return None
-    try:
-        import pyproj
-
-        crs = pyproj.CRS.from_wkt(wkt)
-        epsg = crs.to_epsg()
-        return f"{crs.name} (EPSG:{epsg})" if epsg else crs.name
-    except Exception:
-        return "unparsed CRS"

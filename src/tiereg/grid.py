@@ -248,7 +248,7 @@ def rasterize(
     return acc.result(crs_wkt=crs_wkt)
 
 
-def _nice(value: float) -> float:
+def nice_size(value: float) -> float:
     """Round to 1, 1.5, 2, 2.5, 3, 4, 5, 6 or 8 times a power of ten."""
     if value <= 0 or not math.isfinite(value):
         raise InputError(f"cannot derive a cell size from a spacing of {value}")
@@ -279,7 +279,7 @@ def cell_size_from_density(xy: np.ndarray, *, points_per_cell: float = 0.64) -> 
         raise InputError(
             "the points lie on a line in plan view, so no cell size can be derived from them"
         ) from None
-    return _nice(math.sqrt(points_per_cell * area / n))
+    return nice_size(math.sqrt(points_per_cell * area / n))
 
 
 def fill_normalized(

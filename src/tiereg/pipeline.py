@@ -8,21 +8,23 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from . import __version__
+from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
 from .coarse.refine import SurfaceSampler
+from .crs import crs_label, crs_units
 from .errors import InputError
 from .grid import Grid, GridAccumulator, GridSpec, cell_size_from_density
 from .io import PointSource, open_points
 from .io.base import ArraySource
 from .points import PointSet, validate_points
+from .progress import ProgressFactory, no_progress
 from .quality import HeightStats
 from .transform import Transform
 
@@ -32,26 +34,6 @@ FINE_GRID_FACTOR = 8  # the refinement grid is at most this much finer than the 
 MAX_FINE_CELLS = 25_000_000
 
 PointsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | PointSet | np.ndarray
-
-
-class ProgressBar(Protocol):
-    def update(self, n: int) -> object: ...
-    def close(self) -> object: ...
-
-
-ProgressFactory = Callable[[str, int], ProgressBar]
-
-
-class _NoProgress:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _no_progress(desc: str, total: int) -> ProgressBar:
-    return _NoProgress()
 
 
 @dataclass(frozen=True)
@@ -72,7 +54,7 @@ class Inputs:
             "reference_format": self.reference_format,
             "n_reference": self.n_reference,
             "units": self.units,
-            "crs": _crs_name(self.crs_wkt),
+            "crs": crs_label(self.crs_wkt),
         }
 
 
@@ -139,29 +121,6 @@ def _json_default(o: object) -> object:
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
-def _crs_name(wkt: str | None) -> str | None:
-    if not wkt:
-        return None
-    try:
-        import pyproj
-
-        return pyproj.CRS.from_wkt(wkt).name
-    except Exception:
-        return None
-
-
-def _units(wkt: str | None) -> str:
-    if not wkt:
-        return "unknown"
-    try:
-        import pyproj
-
-        crs = pyproj.CRS.from_wkt(wkt)
-        return crs.axis_info[0].unit_name if crs.axis_info else "unknown"
-    except Exception:
-        return "unknown"
-
-
 def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> PointSource:
     if isinstance(points, PointSource):
         return points
@@ -178,7 +137,7 @@ def grid_reference(
     cell_size: float,
     *,
     fine_factor: int = FINE_GRID_FACTOR,
-    progress: ProgressFactory = _no_progress,
+    progress: ProgressFactory = no_progress,
 ) -> tuple[Grid, Grid | None]:
     """Grid the reference in one streaming pass: the coarse grid and a finer one for refinement.
 
@@ -265,7 +224,7 @@ def register(
         answer can be trusted.
     """
     t0 = time.perf_counter()
-    progress = progress or _no_progress
+    progress = progress or no_progress
     if coarse not in COARSE_METHODS:
         raise InputError(f"unknown coarse method {coarse!r}; choose one of {COARSE_METHODS}")
     if fine not in FINE_METHODS:
@@ -319,7 +278,7 @@ def register(
         reference_format=ref_src.info.format,
         n_reference=ref_src.info.count,
         crs_wkt=ref_src.info.crs_wkt,
-        units=_units(ref_src.info.crs_wkt),
+        units=crs_units(ref_src.info.crs_wkt),
     )
     return RegistrationResult(
         T_ref_mov=T_ref_mov,

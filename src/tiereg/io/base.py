@@ -75,6 +75,12 @@ class ArraySource(PointSource):
         return self._points
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def check_writable(path: str | os.PathLike[str]) -> None:
     """Fail early, before any work, if ``path`` could not be written; creates nothing."""
     with atomic_output(path, commit=False):
@@ -108,6 +114,7 @@ def atomic_output(path: str | os.PathLike[str], *, commit: bool = True) -> Itera
     try:
         yield tmp
         if commit:
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it 0600; use the user's umask
             os.replace(tmp, target)
     finally:
         with contextlib.suppress(OSError):
