@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..points import PointSet
-from .base import ArraySource, PointSource, SourceInfo, atomic_output
+from .base import ArraySource, PointSource, SourceInfo, atomic_output, open_input
 
 __all__ = [
     "FORMATS",
@@ -129,11 +129,8 @@ _SUPPORTED = "LAS/LAZ, XYZ/TXT/CSV, PLY, COLMAP (points3D.txt/.bin or model fold
 
 
 def _head(path: Path) -> bytes:
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(4096)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot be read ({exc.strerror}); check the permissions") from None
+    with open_input(path) as fh:
+        return fh.read(4096)
 
 
 def detect_format(path: str | os.PathLike[str], *, format: str | None = None) -> str:

@@ -127,14 +127,24 @@ def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
-def read_bytes(path: Path) -> bytes:
-    """The whole file, or :class:`InputError` naming it when it cannot be read."""
+@contextlib.contextmanager
+def open_input(path: Path, mode: str = "rb", **kw: Any) -> Iterator[Any]:
+    """``open(path, mode)`` for reading, with OS errors turned into one-line :class:`InputError`."""
     try:
-        return Path(path).read_bytes()
+        with open(path, mode, **kw) as fh:
+            yield fh
     except IsADirectoryError:
         raise InputError(f"{path}: is a directory; give the point file itself") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot be read ({exc.strerror}); check the path") from None
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file; check the path") from None
+    except PermissionError:
+        raise InputError(f"{path}: permission denied; make the file readable") from None
+
+
+def read_bytes(path: Path) -> bytes:
+    """The whole file, or :class:`InputError` naming it when it cannot be read."""
+    with open_input(path) as fh:
+        return fh.read()
 
 
 def format_rows(xyz: np.ndarray, *, sep: str = " ", prefix: Iterable[str] | None = None) -> str:

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError
 from ..points import PointSet
-from .base import atomic_output, check_xyz, format_rows
+from .base import atomic_output, check_xyz, format_rows, open_input
 
 __all__ = ["read_ply", "sniff_ply", "write_ply"]
 
@@ -129,18 +129,13 @@ def read_ply(path: str | os.PathLike[str]) -> PointSet:
         Bad header, no vertex x/y/z, or the file is truncated.
     """
     p = Path(path)
-    try:
-        with open(p, "rb") as fh:
-            fmt, elements, offset = _parse_header(p, fh)
-            idx, vert, cols = _vertex(p, elements)
-            if fmt == "ascii":
-                xyz = _read_ascii(p, fh, sum(e.count for e in elements[:idx]), vert, cols)
-            else:
-                xyz = _read_binary(p, fh, offset, _ENDIAN[fmt], elements[:idx], vert)
-    except IsADirectoryError:
-        raise InputError(f"{p}: is a directory; give the PLY file itself") from None
-    except OSError as exc:
-        raise InputError(f"{p}: cannot be read ({exc.strerror}); check the path") from None
+    with open_input(p) as fh:
+        fmt, elements, offset = _parse_header(p, fh)
+        idx, vert, cols = _vertex(p, elements)
+        if fmt == "ascii":
+            xyz = _read_ascii(p, fh, sum(e.count for e in elements[:idx]), vert, cols)
+        else:
+            xyz = _read_binary(p, fh, offset, _ENDIAN[fmt], elements[:idx], vert)
     return PointSet(xyz, source=str(p))
 
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, InputError
+from ..errors import FormatError
 from ..points import PointSet
-from .base import atomic_output, check_xyz, format_rows
+from .base import atomic_output, check_xyz, format_rows, open_input
 
 __all__ = ["read_xyz", "sniff_xyz", "write_xyz"]
 
@@ -160,24 +160,19 @@ def read_xyz(path: str | os.PathLike[str]) -> PointSet:
         A line holds fewer than three numbers or non-numeric coordinates.
     """
     p = Path(path)
-    try:
-        with open(p, encoding="utf-8-sig", errors="replace") as fh:
-            found = _scan(fh, p)
-            if found is None:
-                return PointSet(np.empty((0, 3)), source=str(p))
-            first, delimiter, cols = found
-            fh.seek(0)
-            try:
-                data = np.loadtxt(
-                    fh, dtype=np.float64, delimiter=delimiter, comments=list(_COMMENTS),
-                    skiprows=first - 1, usecols=cols, ndmin=2,
-                )
-            except ValueError as exc:
-                raise _locate_error(p, first, delimiter, cols, str(exc)) from None
-    except IsADirectoryError:
-        raise InputError(f"{p}: is a directory; give the point file itself") from None
-    except OSError as exc:
-        raise InputError(f"{p}: cannot be read ({exc.strerror}); check the path") from None
+    with open_input(p, "r", encoding="utf-8-sig", errors="replace") as fh:
+        found = _scan(fh, p)
+        if found is None:
+            return PointSet(np.empty((0, 3)), source=str(p))
+        first, delimiter, cols = found
+        fh.seek(0)
+        try:
+            data = np.loadtxt(
+                fh, dtype=np.float64, delimiter=delimiter, comments=list(_COMMENTS),
+                skiprows=first - 1, usecols=cols, ndmin=2,
+            )
+        except ValueError as exc:
+            raise _locate_error(p, first, delimiter, cols, str(exc)) from None
     return PointSet(data, source=str(p))
 
 
