@@ -95,6 +95,10 @@ def test_result_json_follows_the_contract():
     assert data["stages"][0]["name"] == "coarse" and data["stages"][0]["method"] == "pomf"
     assert {"n_moving", "n_used", "rmse_z", "median_dz", "nmad_dz"} <= set(data["quality"])
     assert 0.0 <= data["confidence"] <= 1.0
+    exports = data["exports"]  # paste-ready for PDAL and CloudCompare
+    assert np.array_equal(Transform.from_text(exports["pdal_filters_transformation_matrix"]).matrix,
+                          T)
+    assert np.array_equal(Transform.from_text("\n".join(exports["cloudcompare_matrix"])).matrix, T)
 
 
 def test_coarse_none_keeps_the_input_position():

@@ -21,6 +21,7 @@ from .errors import InputError
 
 STATS = ("count", "min", "max", "mean", "median")
 MEDIAN_SAMPLE = 15
+MERGE_BLOCK = 65_536  # cells merged at once by the median sketch
 
 
 @dataclass(frozen=True)
@@ -198,15 +199,21 @@ class GridAccumulator:
         idx, u, z, rank, first = idx[keep], u[keep], z[keep], rank[keep], first[keep]
         group = np.cumsum(first) - 1
         cells = idx[first]
-        new_keys = np.full((len(cells), k), np.inf, np.float32)
-        new_vals = np.full((len(cells), k), np.nan)
-        new_keys[group, rank] = u
-        new_vals[group, rank] = z
-        keys = np.concatenate([self._keys[cells], new_keys], axis=1)
-        vals = np.concatenate([self._vals[cells], new_vals], axis=1)
-        best = np.argsort(keys, axis=1, kind="stable")[:, :k]
-        self._keys[cells] = np.take_along_axis(keys, best, axis=1)
-        self._vals[cells] = np.take_along_axis(vals, best, axis=1)
+        # merge with the cells' current samples, a block of cells at a time so that the
+        # temporaries stay small whatever the chunk size
+        for lo in range(0, len(cells), MERGE_BLOCK):
+            hi = min(lo + MERGE_BLOCK, len(cells))
+            sel = slice(*np.searchsorted(group, [lo, hi]))  # candidates sorted by cell
+            block = cells[lo:hi]
+            new_keys = np.full((hi - lo, k), np.inf, np.float32)
+            new_vals = np.full((hi - lo, k), np.nan)
+            new_keys[group[sel] - lo, rank[sel]] = u[sel]
+            new_vals[group[sel] - lo, rank[sel]] = z[sel]
+            keys = np.concatenate([self._keys[block], new_keys], axis=1)
+            vals = np.concatenate([self._vals[block], new_vals], axis=1)
+            best = np.argsort(keys, axis=1, kind="stable")[:, :k]
+            self._keys[block] = np.take_along_axis(keys, best, axis=1)
+            self._vals[block] = np.take_along_axis(vals, best, axis=1)
 
     def result(self, *, crs_wkt: str | None = None) -> Grid:
         shape = self.spec.shape

@@ -96,6 +96,10 @@ class RegistrationResult:
             "quality": self.quality.to_dict(),
             "quality_before": self.quality_before.to_dict(),
             "inputs": self.inputs.to_dict(),
+            "exports": {
+                "pdal_filters_transformation_matrix": self.T_ref_mov.to_pdal(),
+                "cloudcompare_matrix": self.T_ref_mov.to_cloudcompare().splitlines(),
+            },
         }
 
     def to_json(self) -> str:
