@@ -74,6 +74,23 @@ def test_median_sketch_is_exact_for_sparse_cells_and_close_for_full_ones(rng):
     assert abs(grid["median"][0, 0] - np.median(full[:, 2])) < 1.3
 
 
+def test_row_medians_equal_numpy(rng):
+    from tiereg.grid import _row_medians
+
+    vals = rng.normal(size=(1000, 9))
+    count = rng.integers(0, 15, 1000)  # counts above 9: the sample is full
+    vals[np.arange(9)[None, :] >= np.minimum(count, 9)[:, None]] = np.nan
+    expected = [np.median(r[: min(c, 9)]) if c else np.nan for r, c in zip(vals, count)]
+    assert np.allclose(_row_medians(vals, count), expected, equal_nan=True)
+
+
+def test_median_sample_size_follows_density():
+    from tiereg.grid import median_sample_for
+
+    assert median_sample_for(0.5) == 7 and median_sample_for(2.0) == 9
+    assert median_sample_for(3000.0) == 31
+
+
 def test_points_outside_or_not_finite_are_ignored():
     spec = GridSpec(0.0, 10.0, 1.0, (10, 10))
     acc = GridAccumulator(spec, stats=("mean",))

@@ -12,7 +12,7 @@ import numpy as np
 
 from .crs import crs_label, crs_units
 from .errors import InputError
-from .grid import GridSpec, fill_normalized, nice_size, rasterize
+from .grid import GridSpec, fill_normalized, median_sample_for, nice_size, rasterize
 from .io import open_points, write_points
 from .io.las import LasSource, transform_las
 from .io.raster import RasterSource, write_geotiff
@@ -101,9 +101,11 @@ def grid_to_geotiff(
         area = max((x1 - x0) * (y1 - y0), 1e-12)
         cell_size = nice_size(math.sqrt(4.0 * area / src.info.count))
     spec = GridSpec.from_bounds(x0, y0, x1, y1, cell_size)
+    per_cell = src.info.count / max(spec.size, 1)
     bar = progress(f"gridding {Path(src.info.path).name}", src.info.count)
     try:
-        grid = rasterize(src.chunks(), spec, stats=(stat,), progress=bar.update)
+        grid = rasterize(src.chunks(), spec, stats=(stat,), progress=bar.update,
+                         median_sample=median_sample_for(per_cell))
     finally:
         bar.close()
     values = grid.count.astype(np.float64) if stat == "count" else grid[stat]
