@@ -91,11 +91,13 @@ class GridSpec:
 
     def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat cell index of each position and whether it falls inside the grid."""
-        c = self.cell_size
-        col = np.floor((np.asarray(x) - self.x0) / c)
-        row = np.floor((self.y0 - np.asarray(y)) / c)
+        inv = 1.0 / self.cell_size
+        col = (np.asarray(x) - self.x0) * inv
+        row = (self.y0 - np.asarray(y)) * inv
         inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
-        idx = np.where(inside, row * self.shape[1] + col, 0).astype(np.int64)
+        # truncation equals floor for the non-negative values inside; outside cells get 0
+        idx = row.astype(np.int64) * self.shape[1] + col.astype(np.int64)
+        idx[~inside] = 0
         return idx, inside
 
 
@@ -172,10 +174,13 @@ class GridAccumulator:
             z = xyz[:, 2]
         if len(idx) == 0:
             return
-        n = self.spec.size
-        self._count += np.bincount(idx, minlength=n)
+        # count over the chunk's own index range: a chunk of strip-ordered lidar touches a
+        # fraction of a large grid, and full-grid bincounts would cost the grid's size per chunk
+        lo, hi = int(idx.min()), int(idx.max()) + 1
+        local = idx - lo
+        self._count[lo:hi] += np.bincount(local, minlength=hi - lo)
         if self._sum is not None:
-            self._sum += np.bincount(idx, weights=z, minlength=n)
+            self._sum[lo:hi] += np.bincount(local, weights=z, minlength=hi - lo)
         if self._min is not None:
             np.minimum.at(self._min, idx, z)
         if self._max is not None:
