@@ -20,18 +20,17 @@ from .coarse import CoarseResult, register_translation
 from .coarse.refine import SurfaceSampler
 from .crs import crs_label, crs_units
 from .errors import InputError
-from .grid import Grid, GridAccumulator, GridSpec, cell_size_from_density
+from .grid import cell_size_from_density
 from .io import PointSource, open_points
 from .io.base import ArraySource
 from .points import PointSet, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats
+from .reference import Reference, base_cell_for, point_spacing, prepare_reference
 from .transform import Transform
 
 FINE_METHODS = ("auto", "none")
 MIN_MOVING_POINTS = 30
-FINE_GRID_FACTOR = 8  # the refinement grid is at most this much finer than the coarse grid
-MAX_FINE_CELLS = 25_000_000
 
 PointsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | PointSet | np.ndarray
 
@@ -135,57 +134,6 @@ def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> 
     return open_points(points, format=fmt)
 
 
-def grid_reference(
-    source: PointSource,
-    origin: np.ndarray,
-    cell_size: float,
-    *,
-    fine_factor: int = FINE_GRID_FACTOR,
-    progress: ProgressFactory = no_progress,
-) -> tuple[Grid, Grid | None]:
-    """Grid the reference in one streaming pass: the coarse grid and a finer one for refinement.
-
-    The finer grid's cell is ``cell_size / fine_factor``, but never below the reference's mean
-    point spacing (cells would be mostly empty). Coordinates are reduced by ``origin`` before
-    gridding, so the grids live in local coordinates.
-    """
-    if source.info.count == 0:
-        raise InputError(f"{source.info.path}: the reference point set is empty; "
-                         "give a file with points in it")
-    assert source.info.bounds is not None
-    lo = np.asarray(source.info.bounds[0]) - origin
-    hi = np.asarray(source.info.bounds[1]) - origin
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise InputError(f"{source.info.path}: the header bounds are not finite; the file is "
-                         "corrupt - re-export it")
-    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], cell_size)
-    acc = GridAccumulator(spec, stats=("mean",))
-    fine_acc = None
-    area = max(float((hi[0] - lo[0]) * (hi[1] - lo[1])), 1e-12)
-    spacing = math.sqrt(area / source.info.count)
-    fine_cell = max(cell_size / fine_factor, spacing)
-    fine_cells = math.ceil((hi[0] - lo[0]) / fine_cell + 2) * math.ceil(
-        (hi[1] - lo[1]) / fine_cell + 2)
-    if fine_cell < cell_size / 1.5 and fine_cells <= MAX_FINE_CELLS:
-        fine_acc = GridAccumulator(
-            GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], fine_cell), stats=("mean",))
-    bar = progress(f"gridding {os.path.basename(source.info.path)}", source.info.count)
-    try:
-        for chunk in source.chunks():
-            local = chunk - origin
-            acc.add(local)
-            if fine_acc is not None:
-                fine_acc.add(local)
-            bar.update(len(chunk))
-    finally:
-        bar.close()
-    grid = acc.result(crs_wkt=source.info.crs_wkt)
-    if not grid.mask.any():
-        raise InputError(f"{source.info.path}: no reference point falls inside its own header "
-                         "bounds; the header is wrong - re-export the file")
-    return grid, (fine_acc.result() if fine_acc is not None else None)
-
-
 def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Transform:
     """``T_ref_mov`` in file coordinates from one between the two local (centred) frames."""
     return Transform.from_translation(o_ref) @ T_local @ Transform.from_translation(-o_mov)
@@ -198,7 +146,7 @@ def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
 
 def register(
     moving: PointsLike | PointSource,
-    reference: PointsLike | PointSource,
+    reference: PointsLike | PointSource | Reference,
     *,
     coarse: str = "auto",
     fine: str = "auto",
@@ -213,7 +161,8 @@ def register(
     ----------
     moving, reference
         Paths (any supported format; several LAS/LAZ tiles, a glob or a folder for the reference),
-        a :class:`~tiereg.PointSet`, or an ``(N, 3)`` float64 array.
+        a :class:`~tiereg.PointSet`, or an ``(N, 3)`` float64 array. ``reference`` may also be a
+        :class:`~tiereg.reference.Reference` prepared once and used for many registrations.
     coarse
         ``"auto"`` or ``"pomf"`` (translation search), or ``"none"`` (keep the input position).
     fine
@@ -237,23 +186,28 @@ def register(
             f"choose one of {FINE_METHODS}"
         )
     mov_src = _as_source(moving, moving_format, "moving")
-    ref_src = _as_source(reference, reference_format, "reference")
     mov = mov_src.read()
     validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
-
     o_mov = np.round(mov.xyz.mean(axis=0))
-    assert ref_src.info.bounds is not None
-    o_ref = np.round((np.asarray(ref_src.info.bounds[0]) + np.asarray(ref_src.info.bounds[1])) / 2)
-    if not np.all(np.isfinite(o_ref)):
-        raise InputError(f"{ref_src.info.path}: the reference bounds are not finite; "
-                         "the file is corrupt - re-export it")
     mov_local = mov.xyz - o_mov
     if cell_size is None:
         cell_size = cell_size_from_density(mov_local)
     elif not (cell_size > 0 and math.isfinite(cell_size)):
         raise InputError(f"--cell-size must be a positive number, got {cell_size}")
 
-    grid, fine_grid = grid_reference(ref_src, o_ref, cell_size, progress=progress)
+    if isinstance(reference, Reference):
+        ref = reference
+    else:
+        ref_src = _as_source(reference, reference_format, "reference")
+        if ref_src.info.count == 0:
+            raise InputError(f"{ref_src.info.path}: the reference point set is empty; "
+                             "give a file with points in it")
+        ref = prepare_reference(ref_src, base_cell=base_cell_for(cell_size, point_spacing(ref_src)),
+                                progress=progress)
+    ref_src, o_ref = ref.source, ref.origin
+    grid = ref.grid(cell_size)
+    cell_size = grid.spec.cell_size
+    fine_grid = ref.base if ref.base_cell < cell_size / 1.5 else None
     sampler = SurfaceSampler.from_grid(fine_grid or grid)
 
     T_in = Transform.from_translation(o_ref).inverse  # reference -> local

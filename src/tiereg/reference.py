@@ -1,0 +1,148 @@
+"""The prepared reference: the lidar (or a DSM) gridded once, then seen at any coarser cell.
+
+One streaming pass puts the reference into a fine *base* grid (per-cell count and mean, in local
+coordinates: file coordinates minus ``origin``). Coarser grids are exact aggregations of the base
+grid (sums and counts of blocks of cells), so the coarse stage can try cell sizes, and a benchmark
+can register many tie-point sets, without reading the lidar again. The base grid itself is the
+surface for sub-cell refinement.
+
+Tie points lie on the visible surface (roofs, canopy), so lidar is gridded from first returns
+when the file records returns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .grid import Grid, GridAccumulator, GridSpec
+from .io import PointSource
+from .io.las import LasSource
+from .progress import ProgressFactory, no_progress
+
+MAX_BASE_CELLS = 40_000_000
+FINE_FACTOR = 8  # the base cell is at most this much finer than a coarse cell
+
+
+@dataclass(frozen=True, eq=False)
+class Reference:
+    """A reference surface ready for registration (see the module docstring)."""
+
+    source: PointSource
+    origin: np.ndarray = field(repr=False)
+    base: Grid = field(repr=False)
+    first_returns_only: bool
+    _cache: dict[int, Grid] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def base_cell(self) -> float:
+        return self.base.spec.cell_size
+
+    @property
+    def spacing(self) -> float:
+        """Mean point spacing of the reference (square root of area per point)."""
+        return point_spacing(self.source)
+
+    def grid(self, cell_size: float) -> Grid:
+        """The mean grid at ``k`` base cells, ``k = max(1, round(cell_size / base_cell))``.
+
+        The returned grid's ``spec.cell_size`` is the cell actually used; its corner is snapped to
+        a multiple of that cell, like :meth:`GridSpec.from_bounds`.
+        """
+        k = max(1, int(round(cell_size / self.base_cell)))
+        if k not in self._cache:
+            self._cache[k] = aggregate(self.base, k)
+        return self._cache[k]
+
+
+def aggregate(grid: Grid, k: int) -> Grid:
+    """Exact mean grid over blocks of ``k x k`` cells (sums and counts), corner snapped to ``k``."""
+    if k == 1:
+        return grid
+    spec = grid.spec
+    c = spec.cell_size
+    big = k * c
+    x0 = math.floor(spec.x0 / big + 1e-9) * big
+    y0 = math.ceil(spec.y0 / big - 1e-9) * big
+    pad_c = int(round((spec.x0 - x0) / c))
+    pad_r = int(round((y0 - spec.y0) / c))
+    rows = -(-(spec.shape[0] + pad_r) // k)
+    cols = -(-(spec.shape[1] + pad_c) // k)
+    count = np.zeros((rows * k, cols * k), np.int64)
+    total = np.zeros((rows * k, cols * k))
+    sl = (slice(pad_r, pad_r + spec.shape[0]), slice(pad_c, pad_c + spec.shape[1]))
+    count[sl] = grid.count
+    total[sl] = np.where(grid.count > 0, grid["mean"] * grid.count, 0.0)
+    count = count.reshape(rows, k, cols, k).sum(axis=(1, 3))
+    total = total.reshape(rows, k, cols, k).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / count, np.nan)
+    return Grid(GridSpec(x0, y0, big, (rows, cols)), count, {"mean": mean}, grid.crs_wkt)
+
+
+def point_spacing(source: PointSource) -> float:
+    """Mean point spacing: the square root of the bounding-box area per point."""
+    assert source.info.bounds is not None
+    (x0, y0, _), (x1, y1, _) = source.info.bounds
+    area = max((x1 - x0) * (y1 - y0), 1e-12)
+    return math.sqrt(area / max(source.info.count, 1))
+
+
+def base_cell_for(cell_size: float, spacing: float) -> float:
+    """A base cell that divides ``cell_size``: ``cell_size / k`` with ``k <= 8``, not finer than
+    the reference's point spacing (cells would be mostly empty)."""
+    k = max(1, min(FINE_FACTOR, int(cell_size / max(spacing, 1e-12))))
+    return cell_size / k
+
+
+def prepare_reference(
+    source: PointSource,
+    *,
+    base_cell: float,
+    first_returns: bool = True,
+    progress: ProgressFactory | None = None,
+) -> Reference:
+    """Grid ``source`` once at ``base_cell`` (one streaming pass; memory follows the grid)."""
+    progress = progress or no_progress
+    info = source.info
+    if info.count == 0:
+        raise InputError(f"{info.path}: the reference point set is empty; "
+                         "give a file with points in it")
+    assert info.bounds is not None
+    lo, hi = np.asarray(info.bounds[0], dtype=np.float64), np.asarray(info.bounds[1])
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise InputError(f"{info.path}: the reference bounds are not finite; the file is "
+                         "corrupt - re-export it")
+    origin = np.round((lo + hi) / 2)
+    lo, hi = lo - origin, hi - origin
+    cells = ((hi[0] - lo[0]) / base_cell + 2) * ((hi[1] - lo[1]) / base_cell + 2)
+    if cells > MAX_BASE_CELLS:  # very large references: a coarser base, still one pass
+        base_cell *= math.ceil(math.sqrt(cells / MAX_BASE_CELLS))
+    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], base_cell)
+    use_first = first_returns and isinstance(source, LasSource)
+    grid = _grid(source, spec, origin, use_first, progress)
+    if use_first and not grid.mask.any():  # no return numbers recorded: use all points
+        use_first = False
+        grid = _grid(source, spec, origin, False, progress)
+    if not grid.mask.any():
+        raise InputError(f"{info.path}: no reference point falls inside its own header bounds; "
+                         "the header is wrong - re-export the file")
+    return Reference(source, origin, grid, use_first)
+
+
+def _grid(source: PointSource, spec: GridSpec, origin: np.ndarray, first_only: bool,
+          progress: ProgressFactory) -> Grid:
+    acc = GridAccumulator(spec, stats=("mean",))
+    bar = progress(f"gridding {source.info.path.rsplit('/', 1)[-1]}", source.info.count)
+    chunks = (source.chunks(keep=lambda r: np.asarray(r.return_number) <= 1)  # type: ignore
+              if first_only else source.chunks())
+    try:
+        for chunk in chunks:
+            acc.add(chunk - origin)
+            bar.update(len(chunk))
+    finally:
+        bar.close()
+    return acc.result(crs_wkt=source.info.crs_wkt)

@@ -1,0 +1,61 @@
+"""The prepared reference: exact aggregation, first returns, reuse across registrations."""
+
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+from scenes import make_scene
+
+from tiereg import Transform, register
+from tiereg.grid import GridSpec, rasterize
+from tiereg.io import open_points
+from tiereg.io.base import ArraySource
+from tiereg.points import PointSet
+from tiereg.reference import aggregate, prepare_reference
+
+
+@pytest.mark.parametrize("k", [2, 3, 8])
+def test_aggregation_equals_gridding_at_the_coarse_cell(rng, k):
+    xyz = np.column_stack([rng.uniform(-503, 497, 20000), rng.uniform(-251, 749, 20000),
+                           rng.normal(50, 10, 20000)])
+    base = rasterize(xyz, GridSpec.from_bounds(-503, -251, 497, 749, 5.0), stats=("mean",))
+    coarse = aggregate(base, k)
+    direct_spec = GridSpec.from_bounds(-503, -251, 497, 749, 5.0 * k)
+    direct = rasterize(xyz, direct_spec, stats=("mean",))
+    # same lattice (corners snapped to multiples of the coarse cell), same numbers
+    assert coarse.spec.x0 == direct_spec.x0 and coarse.spec.y0 == direct_spec.y0
+    r, c = direct.count.shape
+    assert np.array_equal(coarse.count[:r, :c], direct.count)
+    assert coarse.count[r:, :].sum() == 0 and coarse.count[:, c:].sum() == 0
+    assert np.allclose(coarse["mean"][:r, :c], direct["mean"], equal_nan=True, atol=1e-9)
+
+
+def test_first_returns_only(tmp_path):
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales = np.array([0.01, 0.01, 0.01])
+    data = laspy.LasData(header)
+    xy = np.repeat(np.array([[0.5, 0.5], [1.5, 0.5]]), 2, axis=0)
+    data.x, data.y = xy[:, 0], xy[:, 1]
+    data.z = np.array([20.0, 2.0, 30.0, 3.0])  # canopy first returns, ground last returns
+    data.return_number = np.array([1, 2, 1, 2])
+    data.number_of_returns = np.array([2, 2, 2, 2])
+    data.write(str(tmp_path / "r.las"))
+    ref = prepare_reference(open_points(tmp_path / "r.las"), base_cell=1.0)
+    assert ref.first_returns_only
+    heights = ref.base["mean"][ref.base.mask] + ref.origin[2]  # the grid is in local coordinates
+    assert sorted(heights.tolist()) == [20.0, 30.0]
+
+
+def test_a_prepared_reference_serves_many_registrations():
+    scene = make_scene(seed=8, T_mov_ref=Transform.from_translation((-3000.0, 700.0, 10.0)),
+                       lidar_points=200_000)
+    # 200,000 points over 2 km x 2 km: 4.5 m spacing, so a 5 m base cell (coarse cell 20 m)
+    ref = prepare_reference(ArraySource(PointSet(scene.lidar)), base_cell=5.0)
+    for shift in ((0.0, 0.0, 0.0), (123.4, -56.7, 8.9)):
+        moving = scene.tie_mov + shift
+        result = register(moving, ref)
+        truth = scene.T_ref_mov @ Transform.from_translation(shift).inverse
+        c = moving.mean(axis=0, keepdims=True)
+        err = result.T_ref_mov.apply(c) - truth.apply(c)
+        assert result.confident and np.hypot(*err[0, :2]) < 0.1 * result.cell_size
