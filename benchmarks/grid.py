@@ -1,9 +1,9 @@
 """Benchmark: gridding a 20-million-point LAZ with tiereg, against just decoding it.
 
-Acceptance (issue): gridding a LAZ of at least 20 million points keeps peak memory under 1 GB,
+Target: gridding a LAZ of at least 20 million points keeps peak memory under 1 GB,
 and its time is within 1.5x of decoding the same file with laspy/lazrs in the same run.
 
-    python benchmarks/grid.py            # acceptance run: 20 M points, 3 repeats -> results/
+    python benchmarks/grid.py            # full run: 20 M points, 3 repeats -> results/
     python benchmarks/grid.py --quick    # 2 M points, 1 repeat -> work/ (for development)
 
 A synthetic airborne-lidar LAZ (see ``lidar_synth.py``) is generated once into
@@ -62,14 +62,16 @@ def worker(task: dict) -> dict:
                 points += len(chunk)
         seconds = time.perf_counter() - start
         return {"seconds": seconds, "peak_rss_mb": _self_rss_mb(), "points": points}
-    from tiereg.grid import GridSpec, rasterize
+    from tiereg.grid import GridSpec, median_sample_for, rasterize
     from tiereg.io import open_points
 
     start = time.perf_counter()
     src = open_points(path)
     (x0, y0, _), (x1, y1, _) = src.info.bounds
     spec = GridSpec.from_bounds(x0, y0, x1, y1, task["cell"])
-    grid = rasterize(src.chunks(), spec, stats=tuple(task["stats"]))
+    # the median sketch sized as `tiereg grid` sizes it, from the expected points per cell
+    grid = rasterize(src.chunks(), spec, stats=tuple(task["stats"]),
+                     median_sample=median_sample_for(src.info.count / spec.size))
     seconds = time.perf_counter() - start
     return {"seconds": seconds, "peak_rss_mb": _self_rss_mb(), "points": int(grid.count.sum()),
             "cells": spec.size, "occupancy": round(grid.occupancy, 4)}
@@ -194,7 +196,7 @@ def report(env: dict, gen: dict, code: list[dict], rows: list[dict], repeat: int
                      f"{r['peak_rss_mb']:.0f} |")
     lines += [
         "", "## Conclusions", "",
-        (f"- Acceptance (1 m mean grid, {e['points']:,} points): "
+        (f"- Target (1 m mean grid, {e['points']:,} points): "
          f"**{'met' if ok else 'NOT met'}**: {key['ratio_to_decode']:.2f}x the decode time "
          f"(limit 1.5x), peak RSS {key['peak_rss_mb']:.0f} MB (limit 1000 MB)."),
         (f"- The CLI (`tiereg grid --stat mean`, whole process) takes "
