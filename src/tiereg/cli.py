@@ -36,6 +36,10 @@ EXAMPLES = {
     "info": """examples:
   tiereg info lidar.laz
   tiereg info sparse/0 --json""",
+    "simulate": """examples:
+  tiereg simulate scene1
+  tiereg simulate scene2 --kind urban --seed 7 --overlap 0.5 --heading 130 --scale 3.2808
+  tiereg simulate small --world-size 3000 --lidar-size 2000 --block-size 1500""",
     "demo": """examples:
   tiereg demo
   tiereg demo --out /tmp/tiereg-demo --seed 3""",
@@ -124,6 +128,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", metavar="FILE", nargs="+")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
+
+    p = add("simulate", "Simulate a scene with a known answer: lidar (reference.laz), tie points "
+                        "(tiepoints.xyz) and truth.json.")
+    p.add_argument("out", metavar="OUTDIR")
+    p.add_argument("--kind", choices=("farmland", "suburban", "urban", "forest", "mountains"),
+                   default="suburban")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overlap", type=float, default=1.0, help="share of the block inside the "
+                   "lidar footprint (0.3-1)")
+    p.add_argument("--heading", type=float, help="hidden heading in degrees (default random)")
+    p.add_argument("--scale", type=float, help="hidden scale, model units per metre (default "
+                   "random in 0.25-4)")
+    p.add_argument("--lidar-density", type=float, default=2.0, metavar="PTS_PER_M2")
+    p.add_argument("--tie-density", type=float, default=350.0, metavar="PTS_PER_KM2")
+    p.add_argument("--world-size", type=float, default=8000.0, metavar="M")
+    p.add_argument("--lidar-size", type=float, default=4000.0, metavar="M")
+    p.add_argument("--block-size", type=float, default=3000.0, metavar="M")
 
     p = add("demo", "Register tie points made from the shipped lidar sample and compare with "
                     "the truth.")
@@ -268,7 +289,40 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return EXIT_OK if r.confident else EXIT_NOT_CONFIDENT
 
 
-COMMANDS = {"register": _cmd_register, "apply": _cmd_apply, "grid": _cmd_grid,
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .simulate import HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene, \
+        write_scene
+
+    if not 0.0 < args.overlap <= 1.0:
+        raise InputError(f"--overlap must be in (0, 1], got {args.overlap}")
+    if args.scale is not None and not args.scale > 0:
+        raise InputError(f"--scale must be positive, got {args.scale}")
+    hidden = None
+    if args.heading is not None or args.scale is not None:
+        rnd = HiddenTransform.random(np.random.default_rng([args.seed, 2]))
+        hidden = HiddenTransform(
+            heading_deg=rnd.heading_deg if args.heading is None else args.heading,
+            scale=rnd.scale if args.scale is None else args.scale,
+            tilt_deg=rnd.tilt_deg, model_origin=rnd.model_origin)
+    spec = SceneSpec(kind=args.kind, seed=args.seed, world_size_m=args.world_size,
+                     lidar_size_m=args.lidar_size, overlap=args.overlap, hidden=hidden,
+                     survey=LidarSurvey(density_per_m2=args.lidar_density),
+                     block=ImageBlock(side_m=args.block_size,
+                                      tie_points_per_km2=args.tie_density))
+    scene = make_scene(spec)
+    out = write_scene(scene, args.out)
+    if not args.quiet:
+        p = scene.T_ref_mov.parameters()
+        print(f"wrote {out}/reference.laz ({len(scene.lidar.xyz):,} points), tiepoints.xyz "
+              f"({len(scene.moving):,} points), truth.json")
+        print(f"truth: scale {p.scale:.6f}, kappa {np.degrees(p.kappa):.3f} deg, overlap "
+              f"{scene.overlap:.0%}")
+    return EXIT_OK
+
+
+COMMANDS = {"register": _cmd_register, "simulate": _cmd_simulate, "apply": _cmd_apply, "grid": _cmd_grid,
             "info": _cmd_info, "demo": _cmd_demo}
 
 
