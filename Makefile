@@ -24,6 +24,7 @@ test: install
 
 bench: install
 	$(BIN)/python benchmarks/grid.py
+	$(BIN)/python benchmarks/coarse.py
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache

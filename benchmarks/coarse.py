@@ -1,0 +1,361 @@
+"""Coarse-registration benchmark: tiereg's coarse methods and peers on simulated scenes.
+
+The protocol follows the method source's (the share of heading x scale parameter pairs a method
+recovers) on more varied ground: five kinds of synthetic world and real surfaces, any heading,
+scales 0.25-4 (feet vs metres included), any shift, partial overlap down to 30 % of the block, and
+negative cases whose tie points come from a world the lidar never saw.
+
+    python benchmarks/coarse.py            # full run -> benchmarks/results/coarse.{md,json,png}
+    python benchmarks/coarse.py --quick    # a few cases -> benchmarks/work/ (development)
+
+A case is *correct* when the heading is within 2 deg, the scale within 2 % and the horizontal
+position of the block centre within one coarse cell of the truth. A negative case is correct when
+the answer is not confident. *Confidently wrong*: marked confident and not correct, the number
+that matters most. Peers give no confidence; their wrong answers are counted as wrong only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from peers import PEERS_IMAGE, run_open3d_fpfh_ransac  # noqa: E402
+
+from tiereg import register  # noqa: E402
+from tiereg.grid import GridSpec, cell_size_from_density, rasterize  # noqa: E402
+from tiereg.io import open_points  # noqa: E402
+from tiereg.reference import Reference, prepare_reference  # noqa: E402
+from tiereg.simulate import (  # noqa: E402
+    KINDS,
+    HiddenTransform,
+    LidarSurvey,
+    SceneSpec,
+    make_scene,
+    make_world,
+    write_scene,
+)
+from tiereg.transform import Transform  # noqa: E402
+
+WORK = HERE / "work" / "coarse"
+RESULTS = HERE / "results"
+SCALES = (0.25, 0.5, 1.0, 2.0, 3.2808, 4.0)  # model units per reference unit; 3.2808: feet
+HEADINGS_PER_SCALE = 4  # one per quadrant, random inside it
+TIEREG_METHODS = ("pomf",)
+HEADING_TOL_DEG, SCALE_TOL = 2.0, 0.02
+
+
+@dataclass(frozen=True)
+class Case:
+    scene: str
+    index: int
+    hidden: HiddenTransform
+    overlap: float
+    negative: bool = False
+
+
+@dataclass
+class Outcome:
+    method: str
+    case: Case
+    correct: bool
+    confident: bool | None
+    heading_err_deg: float
+    scale_err: float
+    horiz_err_cells: float
+    seconds: float
+    note: str = ""
+
+
+# ------------------------------------------------------------------------------------- scenes
+def scene_specs(quick: bool) -> dict[str, SceneSpec]:
+    survey = LidarSurvey(density_per_m2=0.5 if quick else 1.0)
+    kinds = ("suburban", "mountains") if quick else KINDS
+    specs = {k: SceneSpec(kind=k, seed=10 + i, survey=survey) for i, k in enumerate(kinds)}
+    if not quick:
+        try:
+            from real_worlds import REAL_WORLDS, real_scene_spec
+
+            specs.update({name: real_scene_spec(name, 20 + i)
+                          for i, name in enumerate(REAL_WORLDS)})
+        except ImportError:  # the real surfaces are optional
+            pass
+    return specs
+
+
+def load_world(name: str, spec: SceneSpec):
+    if name in KINDS:
+        return make_world(spec.kind, size_m=spec.world_size_m, cell=spec.world_cell_m,
+                          seed=spec.seed)
+    from real_worlds import load_real_world
+
+    return load_real_world(name)
+
+
+def make_cases(name: str, index0: int, rng: np.random.Generator, quick: bool) -> list[Case]:
+    cases = []
+    scales = (1.0, 3.2808, 0.5) if quick else SCALES
+    per = 2 if quick else HEADINGS_PER_SCALE
+    for scale in scales:
+        for q in range(per):
+            heading = float(rng.uniform(0, 360 / per) + q * 360 / per)
+            hidden = replace(HiddenTransform.random(rng), heading_deg=heading, scale=scale)
+            cases.append(Case(name, index0 + len(cases), hidden, float(rng.uniform(0.3, 1.0))))
+    cases.append(Case(name, index0 + len(cases), HiddenTransform.random(rng), 1.0, negative=True))
+    return cases
+
+
+# ------------------------------------------------------------------------------------ methods
+def evaluate(T_est: Transform, case: Case, scene, cell: float) -> tuple[bool, float, float, float]:
+    """(correct, heading error deg, relative scale error, horizontal error in cells)."""
+    p_est, p_true = T_est.parameters(), scene.T_ref_mov.parameters()
+    dk = (np.degrees(p_est.kappa - p_true.kappa) + 180.0) % 360.0 - 180.0
+    ds = p_est.scale / p_true.scale - 1.0
+    centre = scene.moving.mean(axis=0, keepdims=True)
+    dxy = (T_est.apply(centre) - scene.T_ref_mov.apply(centre))[0, :2]
+    cells = float(np.hypot(*dxy) / cell)
+    ok = abs(dk) <= HEADING_TOL_DEG and abs(ds) <= SCALE_TOL and cells <= 1.0
+    return ok, float(dk), float(ds), cells
+
+
+def run_tiereg(method: str, scene, ref: Reference) -> tuple[Transform, bool, float, str]:
+    t = time.perf_counter()
+    result = register(scene.moving, ref, coarse=method, fine="none")
+    return result.T_ref_mov, result.confident, time.perf_counter() - t, "; ".join(result.reasons)
+
+
+def _pixel_to_map(spec: GridSpec) -> np.ndarray:
+    """3x3: (row, col, 1) -> (x, y, 1) at cell centres."""
+    c = spec.cell_size
+    return np.array([[0.0, c, spec.x0 + 0.5 * c], [-c, 0.0, spec.y0 - 0.5 * c], [0, 0, 1.0]])
+
+
+def run_image_peer(name: str, scene, ref: Reference, cell: float) -> tuple[Transform, float, str]:
+    """Grids as a user would make them: lidar at the tie-point cell, tie points at their own."""
+    ref_grid = ref.grid(cell)
+    mov_cell = cell_size_from_density(scene.moving)
+    lo, hi = scene.moving.min(axis=0), scene.moving.max(axis=0)
+    mov_spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], mov_cell)
+    mov = rasterize(scene.moving, mov_spec, stats=("median",))
+    est = PEERS_IMAGE[name](ref_grid["mean"], mov["median"])
+    G = _pixel_to_map(ref_grid.spec) @ est.H_ref_mov @ np.linalg.inv(_pixel_to_map(mov_spec))
+    s = float(np.sqrt(abs(np.linalg.det(G[:2, :2]))))
+    kappa = float(np.arctan2(G[1, 0], G[0, 0]))
+    t_xy = G[:2, 2] + ref.origin[:2]
+    T = Transform.from_parameters(scale=s, kappa=kappa, translation=(*t_xy, ref.origin[2]))
+    return T, est.seconds, est.note
+
+
+def run_open3d(scene, ref: Reference, cell: float) -> tuple[Transform, float, str]:
+    base = ref.base
+    rows, cols = np.nonzero(base.mask)
+    x, y = base.spec.xy(rows, cols)
+    cloud = np.column_stack([x, y, base["mean"][rows, cols]]) + ref.origin
+    est = run_open3d_fpfh_ransac(scene.moving, cloud, voxel=cell)
+    try:
+        T = Transform(est.T_ref_mov)
+    except Exception as exc:  # a collapsed or reflected estimate
+        return Transform.identity(), est.seconds, f"invalid transform: {exc}"
+    return T, est.seconds, est.note
+
+
+# ---------------------------------------------------------------------------------------- run
+def run(quick: bool, with_open3d: bool) -> tuple[list[Outcome], dict]:
+    rng = np.random.default_rng(2026)
+    outcomes: list[Outcome] = []
+    meta: dict = {"scenes": {}}
+    WORK.mkdir(parents=True, exist_ok=True)
+    for name, spec in scene_specs(quick).items():
+        t0 = time.perf_counter()
+        world = load_world(name, spec)
+        base_scene = make_scene(spec, world=world)
+        laz = WORK / f"{name}-{spec.seed}{'-quick' if quick else ''}"
+        if not (laz / "reference.laz").exists():
+            write_scene(base_scene, laz)
+        ref_source = open_points(laz / "reference.laz")
+        cell = cell_size_from_density(base_scene.tie_points.true_xyz)
+        ref = prepare_reference(ref_source, base_cell=cell / 8)
+        meta["scenes"][name] = {"kind": spec.kind, "cell": cell,
+                                "lidar_points": ref_source.info.count,
+                                "tie_points": len(base_scene.moving),
+                                "setup_s": round(time.perf_counter() - t0, 1)}
+        cases = make_cases(name, len(outcomes), rng, quick)
+        for case in cases:
+            scene = make_scene(replace(spec, hidden=case.hidden, overlap=case.overlap,
+                                       tie_world_seed=spec.seed + 1000 if case.negative else None),
+                               world=world)
+            for method in TIEREG_METHODS:
+                T, conf, sec, note = run_tiereg(method, scene, ref)
+                outcomes.append(_outcome(f"tiereg {method}", case, scene, T, conf, sec, note,
+                                         cell))
+            for peer in PEERS_IMAGE:
+                T, sec, note = run_image_peer(peer, scene, ref, cell)
+                outcomes.append(_outcome(peer, case, scene, T, None, sec, note, cell))
+            if with_open3d:
+                T, sec, note = run_open3d(scene, ref, cell)
+                outcomes.append(_outcome("open3d_fpfh_ransac", case, scene, T, None, sec, note,
+                                         cell))
+        print(f"{name}: {len(cases)} cases done", file=sys.stderr)
+    return outcomes, meta
+
+
+def _outcome(method, case, scene, T, confident, seconds, note, cell) -> Outcome:
+    ok, dk, ds, cells = evaluate(T, case, scene, cell)
+    if case.negative:
+        ok = confident is False
+    return Outcome(method, case, ok, confident, dk, ds, cells, seconds, note[:200])
+
+
+# ------------------------------------------------------------------------------------ reports
+def summarize(outcomes: list[Outcome]) -> dict:
+    out: dict = {}
+    for m in dict.fromkeys(o.method for o in outcomes):
+        pos = [o for o in outcomes if o.method == m and not o.case.negative]
+        neg = [o for o in outcomes if o.method == m and o.case.negative]
+        good = [o for o in pos if o.correct]
+        out[m] = {
+            "cases": len(pos),
+            "correct": len(good),
+            "confidently_wrong": sum(1 for o in pos + neg if o.confident and not o.correct)
+            if pos and pos[0].confident is not None else None,
+            "confident": sum(1 for o in pos if o.confident) if pos and pos[0].confident
+            is not None else None,
+            "negatives": len(neg),
+            "negatives_rejected": sum(1 for o in neg if o.correct),
+            "median_heading_err_deg": float(np.median([abs(o.heading_err_deg) for o in good]))
+            if good else None,
+            "median_scale_err_pct": float(np.median([abs(o.scale_err) * 100 for o in good]))
+            if good else None,
+            "median_horiz_err_cells": float(np.median([o.horiz_err_cells for o in good]))
+            if good else None,
+            "median_seconds": float(np.median([o.seconds for o in pos + neg])),
+            "by_scene": {s: [sum(o.correct for o in pos if o.case.scene == s),
+                             sum(1 for o in pos if o.case.scene == s)]
+                         for s in dict.fromkeys(o.case.scene for o in pos)},
+            "by_scale": {f"{sc:g}": [sum(o.correct for o in pos if o.case.hidden.scale == sc),
+                                     sum(1 for o in pos if o.case.hidden.scale == sc)]
+                         for sc in sorted({o.case.hidden.scale for o in pos})},
+        }
+    return out
+
+
+def _fmt(v, spec=".2f"):
+    return "-" if v is None else format(v, spec)
+
+
+def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: float) -> None:
+    summary = summarize(outcomes)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "# Coarse-registration benchmark", "",
+        f"- date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}; "
+        f"machine: {platform.machine()}, Python {platform.python_version()}; "
+        f"total run time {seconds / 60:.1f} min",
+        "- scenes: " + ", ".join(f"{k} ({v['tie_points']} tie points, "
+                                 f"{v['lidar_points']:,} lidar points, cell {v['cell']:g} m)"
+                                 for k, v in meta["scenes"].items()),
+        f"- cases per scene: scales {', '.join(f'{s:g}' for s in SCALES)} x "
+        f"{HEADINGS_PER_SCALE} headings (one per quadrant, random inside), random shift, "
+        "overlap U(0.3, 1), small random tilt; plus one negative case per scene (tie points "
+        "from another world)",
+        f"- correct: heading within {HEADING_TOL_DEG:g} deg, scale within "
+        f"{SCALE_TOL:.0%}, block centre within one coarse cell; confidently wrong: marked "
+        "confident and not correct (peers give no confidence)", "",
+        "| method | correct | rate | confidently wrong | confident | negatives rejected | "
+        "median heading err (deg) | median scale err (%) | median position err (cells) | "
+        "median s/case |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for m, s in summary.items():
+        lines.append(
+            f"| {m} | {s['correct']}/{s['cases']} | {s['correct'] / max(s['cases'], 1):.0%} | "
+            f"{_fmt(s['confidently_wrong'], 'd')} | {_fmt(s['confident'], 'd')} | "
+            f"{s['negatives_rejected']}/{s['negatives']} | "
+            f"{_fmt(s['median_heading_err_deg'])} | {_fmt(s['median_scale_err_pct'])} | "
+            f"{_fmt(s['median_horiz_err_cells'])} | {s['median_seconds']:.2f} |")
+    scenes = list(meta["scenes"])
+    lines += ["", "## Correct by scene", "", "| method | " + " | ".join(scenes) + " |",
+              "|---|" + "---:|" * len(scenes)]
+    for m, s in summary.items():
+        lines.append(f"| {m} | " + " | ".join(
+            f"{s['by_scene'].get(n, [0, 0])[0]}/{s['by_scene'].get(n, [0, 0])[1]}"
+            for n in scenes) + " |")
+    scale_keys = list(next(iter(summary.values()))["by_scale"]) if summary else []
+    lines += ["", "## Correct by scale", "", "| method | " + " | ".join(scale_keys) + " |",
+              "|---|" + "---:|" * len(scale_keys)]
+    for m, s in summary.items():
+        lines.append(f"| {m} | " + " | ".join(f"{a}/{b}" for a, b in s["by_scale"].values())
+                     + " |")
+    lines += ["", "![success against heading and scale](coarse.png)", ""]
+    (out_dir / "coarse.md").write_text("\n".join(lines) + "\n")
+    raw = [{"method": o.method, "scene": o.case.scene, "case": o.case.index,
+            "negative": o.case.negative, "heading_deg": o.case.hidden.heading_deg,
+            "scale": o.case.hidden.scale, "overlap": o.case.overlap, "correct": o.correct,
+            "confident": o.confident, "heading_err_deg": o.heading_err_deg,
+            "scale_err": o.scale_err, "horiz_err_cells": o.horiz_err_cells,
+            "seconds": o.seconds, "note": o.note} for o in outcomes]
+    (out_dir / "coarse.json").write_text(json.dumps({"meta": meta, "summary": summary,
+                                                     "outcomes": raw}, indent=1,
+                                                    default=_json_number) + "\n")
+    plot(outcomes, out_dir / "coarse.png")
+
+
+def _json_number(o):
+    if isinstance(o, (np.integer, np.floating, np.bool_)):
+        return o.item()
+    raise TypeError(type(o).__name__)
+
+
+def plot(outcomes: list[Outcome], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    methods = list(dict.fromkeys(o.method for o in outcomes))
+    bins = np.arange(0, 361, 45)
+    for m in methods:
+        pos = [o for o in outcomes if o.method == m and not o.case.negative]
+        h = np.array([o.case.hidden.heading_deg for o in pos])
+        ok = np.array([o.correct for o in pos], float)
+        idx = np.digitize(h, bins) - 1
+        rate = [ok[idx == i].mean() if (idx == i).any() else np.nan for i in range(len(bins) - 1)]
+        ax1.plot(bins[:-1] + 22.5, np.array(rate) * 100, marker="o", label=m)
+        scales = sorted({o.case.hidden.scale for o in pos})
+        rate = [np.mean([o.correct for o in pos if o.case.hidden.scale == s]) for s in scales]
+        ax2.plot(scales, np.array(rate) * 100, marker="o", label=m)
+    ax1.set(xlabel="hidden heading (deg)", ylabel="correct (%)", ylim=(-5, 105),
+            title="success against heading")
+    ax2.set(xlabel="hidden scale (model units per metre)", ylabel="correct (%)", xscale="log",
+            ylim=(-5, 105), title="success against scale")
+    ax2.set_xticks(SCALES, [f"{s:g}" for s in SCALES])
+    ax1.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a few cases, results to work/")
+    parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D baseline")
+    args = parser.parse_args()
+    t0 = time.perf_counter()
+    outcomes, meta = run(args.quick, with_open3d=not args.no_open3d)
+    write_report(outcomes, meta, WORK if args.quick else RESULTS, time.perf_counter() - t0)
+    print((WORK if args.quick else RESULTS) / "coarse.md")
+
+
+if __name__ == "__main__":
+    main()
