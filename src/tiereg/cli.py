@@ -292,8 +292,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .simulate import HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene, \
-        write_scene
+    from .simulate import (
+        HiddenTransform,
+        ImageBlock,
+        LidarSurvey,
+        SceneSpec,
+        make_scene,
+        write_scene,
+    )
 
     if not 0.0 < args.overlap <= 1.0:
         raise InputError(f"--overlap must be in (0, 1], got {args.overlap}")

@@ -18,6 +18,7 @@ from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
 from .coarse.refine import SurfaceSampler
+from .coarse.similarity import register_similarity
 from .crs import crs_label, crs_units
 from .errors import InputError
 from .grid import cell_size_from_density
@@ -190,8 +191,9 @@ def register(
     validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
     o_mov = np.round(mov.xyz.mean(axis=0))
     mov_local = mov.xyz - o_mov
+    tie_cell = cell_size_from_density(mov_local)  # model units
     if cell_size is None:
-        cell_size = cell_size_from_density(mov_local)
+        cell_size = tie_cell
     elif not (cell_size > 0 and math.isfinite(cell_size)):
         raise InputError(f"--cell-size must be a positive number, got {cell_size}")
 
@@ -202,7 +204,9 @@ def register(
         if ref_src.info.count == 0:
             raise InputError(f"{ref_src.info.path}: the reference point set is empty; "
                              "give a file with points in it")
-        ref = prepare_reference(ref_src, base_cell=base_cell_for(cell_size, point_spacing(ref_src)),
+        # auto and search try scales down to a quarter: the base serves the finest of them
+        finest = cell_size if coarse in ("pomf", "none") else cell_size / 4
+        ref = prepare_reference(ref_src, base_cell=base_cell_for(finest, point_spacing(ref_src)),
                                 progress=progress)
     ref_src, o_ref = ref.source, ref.origin
     grid = ref.grid(cell_size)
@@ -221,7 +225,11 @@ def register(
         confident, confidence = before.overlap_fraction > 0.3, 0.0
         reasons.append("no coarse registration was asked for (--coarse none)")
     else:
-        coarse_result = register_translation(mov_local, grid, reference_fine=fine_grid)
+        if coarse == "pomf":
+            coarse_result = register_translation(mov_local, grid, reference_fine=fine_grid)
+        else:  # search, auto
+            coarse_result = register_similarity(mov_local, ref, tie_cell=tie_cell,
+                                                method=coarse)
         T_local = coarse_result.T_ref_mov
         coarse_result = replace(coarse_result, T_ref_mov=_to_world(T_local, o_ref, o_mov))
         confident, confidence = coarse_result.confident, coarse_result.confidence

@@ -1,7 +1,9 @@
 """Coarse registration: from no initial guess to within a cell or two.
 
-Today: ``pomf``, a translation-only search (phase-only matched filter candidates verified by
-masked normalized cross-correlation), followed by sub-cell refinement and the height offset.
+``search`` (and ``auto``, which is ``search`` in this version): heading x scale x shift by a
+coarse-to-fine space-domain search scored by masked NCC, refined continuously (module
+:mod:`~tiereg.coarse.similarity`). ``pomf``: translation only (phase-only matched filter
+candidates verified by masked NCC), then sub-cell refinement and the height offset.
 """
 
 from __future__ import annotations
@@ -9,6 +11,6 @@ from __future__ import annotations
 from .result import Candidate, CoarseResult
 from .translation import register_translation
 
-METHODS = ("auto", "pomf", "none")
+METHODS = ("auto", "search", "pomf", "none")
 
 __all__ = ["METHODS", "Candidate", "CoarseResult", "register_translation"]

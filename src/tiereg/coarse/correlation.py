@@ -75,9 +75,26 @@ def cross_power_correlation(
     return corr.to_full(fft.irfft2(cross, s=corr.fft_shape))
 
 
+class MaskedReference:
+    """A reference image and mask whose spectra are kept per FFT shape, for many correlations."""
+
+    def __init__(self, image: np.ndarray, mask: np.ndarray):
+        self.mask = np.asarray(mask, dtype=np.float64)
+        self.image = np.where(self.mask > 0, image, 0.0)
+        self.shape = self.image.shape
+        self._spectra: dict[tuple[tuple[int, int], tuple[int, int]], tuple] = {}
+
+    def spectra(self, corr: _Correlator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        key = (corr.mov_shape, corr.fft_shape)
+        if key not in self._spectra:
+            self._spectra[key] = (corr.spectrum(self.image), corr.spectrum(self.mask),
+                                  corr.spectrum(self.image * self.image))
+        return self._spectra[key]
+
+
 def masked_ncc(
-    reference: np.ndarray,
-    reference_mask: np.ndarray,
+    reference: np.ndarray | MaskedReference,
+    reference_mask: np.ndarray | None,
     moving: np.ndarray,
     moving_mask: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -90,20 +107,21 @@ def masked_ncc(
 
         ncc = (sum f_r f_m - S_r S_m / n) / sqrt((sum f_r^2 - S_r^2/n) (sum f_m^2 - S_m^2/n))
 
-    Shifts with fewer than 3 common cells get ``ncc = 0``.
+    Shifts with fewer than 3 common cells get ``ncc = 0``. ``reference`` may be a
+    :class:`MaskedReference` (then ``reference_mask`` is ignored) to reuse its spectra.
     """
-    mr = np.asarray(reference_mask, dtype=np.float64)
+    ref = reference if isinstance(reference, MaskedReference) else MaskedReference(
+        reference, reference_mask)
     mm = np.asarray(moving_mask, dtype=np.float64)
-    fr = np.where(mr > 0, reference, 0.0)
     fm = np.where(mm > 0, moving, 0.0)
-    corr = _Correlator(fr.shape, fm.shape)
-    s_fr, s_fm = corr.spectrum(fr), corr.spectrum(fm)
-    s_mr, s_mm = corr.spectrum(mr), corr.spectrum(mm)
+    corr = _Correlator(ref.shape, fm.shape)
+    s_fr, s_mr, s_fr2 = ref.spectra(corr)
+    s_fm, s_mm = corr.spectrum(fm), corr.spectrum(mm)
     n = np.round(corr.correlate(s_mr, s_mm))
     sum_r = corr.correlate(s_fr, s_mm)
     sum_m = corr.correlate(s_mr, s_fm)
     sum_rm = corr.correlate(s_fr, s_fm)
-    sum_rr = corr.correlate(corr.spectrum(fr * fr), s_mm)
+    sum_rr = corr.correlate(s_fr2, s_mm)
     sum_mm = corr.correlate(s_mr, corr.spectrum(fm * fm))
     with np.errstate(invalid="ignore", divide="ignore"):
         n_safe = np.maximum(n, 1.0)

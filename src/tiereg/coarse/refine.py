@@ -6,6 +6,7 @@ Vertical distances of the points to the surface (least z-difference, Rosenholm &
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,69 +73,96 @@ def _tukey_loss(r: np.ndarray, scale: float, c: float = 4.685) -> np.ndarray:
     return (c**2 / 6.0) * (1.0 - (1.0 - a**2) ** 3)
 
 
+@dataclass(frozen=True)
+class SurfaceFit:
+    params: np.ndarray
+    tz: float  # profiled height offset
+    sigma0: float  # NMAD of the residuals at the optimum
+    n_used: int
+    iterations: int
+    converged: bool
+
+
+def fit_to_surface(
+    place: Callable[[np.ndarray], np.ndarray],
+    sampler: SurfaceSampler,
+    initial: np.ndarray,
+    steps: np.ndarray,
+    *,
+    tol_fraction: float = 1 / 256,
+    max_iterations: int = 600,
+) -> SurfaceFit:
+    """Minimise a robust loss of vertical distances of placed points to the surface.
+
+    ``place(params)`` returns the points ``(N, 3)`` in surface coordinates without the height
+    offset; the offset is profiled out as ``tz = median(Z(x, y) - z)`` and the loss is
+    ``sum rho((Z - z - tz) / s)`` with Tukey's bounded ``rho`` and a fixed scale ``s`` (NMAD at
+    the start), so canopy points and blunders cannot pull the answer. A compass (pattern) search
+    minimises it: derivative-free, hence indifferent to the noisy gradients of a gridded surface.
+    It starts with ``steps`` per parameter, halves them when no move helps, and stops when they
+    are below ``tol_fraction`` of the start. The same points enter every evaluation.
+    """
+    p0 = np.asarray(initial, dtype=np.float64)
+    steps = np.asarray(steps, dtype=np.float64).copy()
+    stop = steps * tol_fraction
+
+    def residuals(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pts = place(params)
+        z, _, _, ok = sampler.sample(pts[:, 0], pts[:, 1])
+        return z - pts[:, 2], ok
+
+    r0, use = residuals(p0)
+    n0 = int(use.sum())
+    if n0 < 10:
+        return SurfaceFit(p0, float("nan"), float("nan"), n0, 0, False)
+    scale = max(nmad(r0[use]), 1e-6 * max(1.0, float(np.abs(r0[use]).max())))
+    worst = 4.685**2 / 6
+
+    def loss(params: np.ndarray) -> float:
+        r, ok = residuals(params)
+        good = use & ok
+        if good.sum() < 0.9 * n0:
+            return np.inf
+        d = r[good] - np.median(r[good])
+        return float(_tukey_loss(d, scale).sum() + (n0 - good.sum()) * worst)
+
+    p, best = p0.copy(), loss(p0)
+    it = 0
+    while np.any(steps >= stop) and it < max_iterations:
+        it += 1
+        moved = False
+        for i in np.flatnonzero(steps >= stop):
+            for sign in (1.0, -1.0):
+                trial = p.copy()
+                trial[i] += sign * steps[i]
+                value = loss(trial)
+                if value < best:
+                    p, best, moved = trial, value, True
+                    break
+        if not moved:
+            steps = steps / 2
+    r, ok = residuals(p)
+    good = use & ok
+    tz = float(np.median(r[good]))
+    return SurfaceFit(p, tz, nmad(r[good] - tz), int(good.sum()), it, not np.any(steps >= stop))
+
+
 def refine_translation(
     xyz: np.ndarray,
     sampler: SurfaceSampler,
     initial: np.ndarray,
     *,
     search_radius: float | None = None,
-    tol: float | None = None,
-    max_iterations: int = 400,
 ) -> TranslationFit:
-    """Minimise a robust loss of vertical distances over the horizontal shift.
+    """Refine a horizontal shift (and the height offset) of points against the surface.
 
-    For a shift ``t`` the height offset is profiled out as ``tz(t) = median(Z(x+t) - z)`` and the
-    loss is ``sum rho((Z(x + t) - z - tz) / s)`` with Tukey's bounded ``rho`` and a fixed scale
-    ``s`` (NMAD at the start), so canopy points and blunders cannot pull the answer. The loss is
-    minimised by a compass (pattern) search: derivative-free, hence indifferent to the noisy
-    gradients of a gridded surface. Starts with steps of half the ``search_radius`` (default one
-    cell of the surface), stops at ``tol`` (default 1/500 cell) and never leaves that radius.
+    Steps start at half the ``search_radius`` (default one cell of the surface); a result that
+    ends on that radius is reported as not converged.
     """
-    t0 = np.asarray(initial, dtype=np.float64)[:2].copy()
-    cell = sampler.grid.spec.cell_size
-    radius = cell if search_radius is None else search_radius
-    tol = cell / 500 if tol is None else tol
-    z_all = xyz[:, 2]
-
-    def residuals(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        z, _, _, ok = sampler.sample(xyz[:, 0] + t[0], xyz[:, 1] + t[1])
-        return z - z_all, ok
-
-    r0, ok0 = residuals(t0)
-    if ok0.sum() < 10:
-        return TranslationFit((float(t0[0]), float(t0[1]), float("nan")), 0, False,
-                              int(ok0.sum()), float("nan"))
-    scale = max(nmad(r0[ok0]), 1e-6 * max(1.0, float(np.abs(z_all).max())))
-    # the same points throughout, so losses at different shifts compare fairly
-    use = ok0
-
-    def loss(t: np.ndarray) -> float:
-        r, ok = residuals(t)
-        good = use & ok
-        if good.sum() < 0.9 * use.sum():
-            return np.inf
-        d = r[good] - np.median(r[good])
-        return float(_tukey_loss(d, scale).sum() + (use.sum() - good.sum()) * 4.685**2 / 6)
-
-    t, best = t0.copy(), loss(t0)
-    step = radius / 2
-    directions = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]],
-                          dtype=np.float64)
-    it = 0
-    while step >= tol and it < max_iterations:
-        it += 1
-        trials = t + step * directions
-        trials = trials[np.hypot(*(trials - t0).T) <= radius]
-        values = [loss(p) for p in trials]
-        if values and min(values) < best:
-            k = int(np.argmin(values))
-            t, best = trials[k], values[k]
-        else:
-            step /= 2
-    r, ok = residuals(t)
-    good = use & ok
-    tz = float(np.median(r[good]))
-    sigma = nmad(r[good] - tz)
-    on_edge = np.hypot(*(t - t0)) > radius - 2 * tol
-    return TranslationFit((float(t[0]), float(t[1]), tz), it, step < tol and not on_edge,
-                          int(good.sum()), sigma)
+    t0 = np.asarray(initial, dtype=np.float64)[:2]
+    radius = sampler.grid.spec.cell_size if search_radius is None else search_radius
+    fit = fit_to_surface(lambda t: xyz + [t[0], t[1], 0.0], sampler, t0,
+                         np.array([radius / 2, radius / 2]), tol_fraction=1 / 256)
+    inside = np.hypot(*(fit.params - t0)) <= radius
+    return TranslationFit((float(fit.params[0]), float(fit.params[1]), fit.tz), fit.iterations,
+                          fit.converged and inside, fit.n_used, fit.sigma0)

@@ -1,0 +1,208 @@
+"""Exhaustive heading x scale search, coarse to fine, scored by masked NCC (space domain).
+
+A hypothesis ``(kappa, sigma)`` rotates the tie points by ``kappa`` and scales them by ``sigma``
+(reference units per model unit); the masked normalized cross-correlation (Padfield 2012) of
+their grid with the reference grid then gives the best shift and its score for all shifts at
+once. The tie points are gridded on the lattice of the reference grid, whose cell is the tie
+cell times ``sigma`` times the pyramid level, so every hypothesis compares like with like.
+
+Levels (tie cells per search cell): 2, a full sweep of heading and scale; 1, local refinement of
+the best distinct candidates. The band-pass keeps the same width on the ground at every level
+(four tie cells): coarser sweeps smooth away what tells the right hypothesis from a wrong one.
+Cost grows with the number of hypotheses, not with the lidar: the reference grids are exact
+aggregations of one prepared base grid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..grid import Grid, GridSpec, rasterize
+from ..reference import Reference
+from ..transform import Transform
+from .correlation import MaskedReference, masked_ncc, shift_of_index, subpixel_peak
+from .preprocess import prepare
+
+MIN_OVERLAP = 0.3
+BANDPASS_TIE_CELLS = 6.0  # band-pass width on the ground, in tie cells, at every level
+MAX_REFERENCE_CELLS = 320  # per side: finer hypotheses (tiny blocks) are not tried
+MIN_SUPPORT_CELLS = 50  # correlations over fewer cells are high by chance too often
+RIVAL_KAPPA_DEG, RIVAL_SCALE, RIVAL_SHIFT_TIE_CELLS = 20.0, 1.25, 6.0  # a different answer
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """Moving (local, model units) -> reference (local): ``q = sigma R(kappa) p + t``."""
+
+    kappa: float  # radians
+    sigma: float  # reference units per model unit
+    tx: float
+    ty: float
+    score: float  # NCC x sqrt(overlap fraction)
+    ncc: float
+    overlap: float
+    level: int
+
+    def transform(self, tz: float = 0.0) -> Transform:
+        return Transform.from_parameters(scale=self.sigma, kappa=self.kappa,
+                                         translation=(self.tx, self.ty, tz))
+
+    def distinct_from(self, other: Hypothesis, *, kappa_deg: float, log_sigma: float,
+                      shift: float) -> bool:
+        dk = abs((math.degrees(self.kappa - other.kappa) + 180.0) % 360.0 - 180.0)
+        ds = abs(math.log(self.sigma / other.sigma))
+        dt = math.hypot(self.tx - other.tx, self.ty - other.ty)
+        return dk > kappa_deg or ds > log_sigma or dt > shift
+
+
+class _Scorer:
+    """Scores hypotheses at one pyramid level; caches prepared reference grids by cell."""
+
+    def __init__(self, moving: np.ndarray, ref: Reference, tie_cell: float, level: int, *,
+                 stat: str = "median"):
+        self.xy, self.z = moving[:, :2], moving[:, 2]
+        self.ref, self.tie_cell, self.level, self.stat = ref, tie_cell, level, stat
+        self._refs: dict[float, tuple[Grid, MaskedReference, float]] = {}
+        (x0, y0, x1, y1) = ref.base.spec.bounds
+        self.ref_extent = max(x1 - x0, y1 - y0)
+
+    def reference(self, sigma: float) -> tuple[Grid, MaskedReference, float]:
+        """The prepared reference grid for ``sigma`` and its band-pass width in cells."""
+        cell = max(self.level * self.tie_cell * sigma, self.ref.base_cell)
+        grid = self.ref.grid(cell)
+        key = grid.spec.cell_size
+        if key not in self._refs:
+            bandpass = BANDPASS_TIE_CELLS * self.tie_cell * sigma / key
+            p = prepare(grid["mean"], grid.mask, bandpass_sigma_cells=bandpass)
+            self._refs[key] = (grid, MaskedReference(p.image, p.support), bandpass)
+        return self._refs[key]
+
+    def score(self, kappa: float, sigma: float) -> Hypothesis | None:
+        if self.level * self.tie_cell * sigma < self.ref_extent / MAX_REFERENCE_CELLS:
+            return None
+        grid, mref, bandpass = self.reference(sigma)
+        c = grid.spec.cell_size
+        ck, sk = math.cos(kappa), math.sin(kappa)
+        xy = sigma * (self.xy @ np.array([[ck, sk], [-sk, ck]]))
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        try:
+            spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], c, max_cells=4_000_000)
+        except Exception:
+            return None
+        if spec.size < MIN_SUPPORT_CELLS:
+            return None
+        mgrid = rasterize(np.column_stack([xy, self.z]), spec, stats=(self.stat,))
+        mov = prepare(mgrid[self.stat], mgrid.mask, bandpass_sigma_cells=bandpass)
+        if mov.support.sum() < MIN_SUPPORT_CELLS:
+            return None
+        ncc, n = masked_ncc(mref, None, mov.image, mov.support)
+        overlap = n / float(mov.support.sum())
+        valid = (overlap >= MIN_OVERLAP) & (n >= MIN_SUPPORT_CELLS)
+        score = np.where(valid, ncc * np.sqrt(np.minimum(overlap, 1.0)), -1.0)
+        best = np.unravel_index(int(np.argmax(score)), score.shape)
+        if score[best] <= -1.0:
+            return None
+        r, col = subpixel_peak(score, best) if self.level == 1 else best
+        dr, dc = shift_of_index((r, col), spec.shape)
+        tx = grid.spec.x0 - spec.x0 + dc * c
+        ty = grid.spec.y0 - spec.y0 - dr * c
+        return Hypothesis(kappa, sigma, tx, ty, float(score[best]), float(ncc[best]),
+                          float(overlap[best]), self.level)
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    best: Hypothesis
+    runner_up: Hypothesis | None  # best hypothesis distinct from the winner, at the sweep level
+    sweep_best: Hypothesis  # best of the full sweep (coarsest level)
+    levels: tuple[tuple[Hypothesis, ...], ...]  # kept candidates per level, coarse to fine
+    n_hypotheses: int
+
+
+def _distinct_top(hyps: list[Hypothesis], k: int, *, kappa_deg: float, log_sigma: float,
+                  shift: float) -> list[Hypothesis]:
+    out: list[Hypothesis] = []
+    for h in sorted(hyps, key=lambda h: -h.score):
+        if all(h.distinct_from(o, kappa_deg=kappa_deg, log_sigma=log_sigma, shift=shift)
+               for o in out):
+            out.append(h)
+            if len(out) == k:
+                break
+    return out
+
+
+def search(
+    moving: np.ndarray,
+    ref: Reference,
+    *,
+    tie_cell: float,
+    sigma_range: tuple[float, float] = (0.25, 4.0),
+    kappa_step_deg: float = 7.5,
+    sigma_ratio: float = 2 ** (1 / 5),
+    keep: int = 6,
+    seeds: list[tuple[float, float]] | None = None,
+) -> SearchResult:
+    """Search heading and scale; ``moving`` is local (centred) model coordinates.
+
+    ``tie_cell`` is the tie-point grid cell in model units; ``sigma_range`` bounds the scale
+    (reference units per model unit). Scales at which the block could not overlap the reference
+    by :data:`MIN_OVERLAP` of its area are skipped. ``seeds`` are extra ``(kappa, sigma)``
+    hypotheses, e.g. from a frequency-domain method, refined like the sweep's own candidates.
+    """
+    n_hyp = 0
+    sweep_scorer = _Scorer(moving, ref, tie_cell, 2, stat="mean")
+    lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
+    block_area = float(np.prod(hi - lo))
+    (x0, y0, x1, y1) = ref.base.spec.bounds
+    sigma_max = min(sigma_range[1], math.sqrt((x1 - x0) * (y1 - y0) / (MIN_OVERLAP * block_area)))
+    n_sigma = max(0, int(math.ceil(math.log(sigma_max / sigma_range[0]) / math.log(sigma_ratio))))
+    sigmas = sigma_range[0] * sigma_ratio ** np.arange(n_sigma + 1)
+    kappas = np.radians(np.arange(0.0, 360.0, kappa_step_deg))
+    hyps = [(float(k), float(sg)) for sg in sigmas for k in kappas] + list(seeds or [])
+    sweep: list[Hypothesis] = []
+    for kappa, sigma in hyps:
+        h = sweep_scorer.score(kappa, sigma)
+        n_hyp += 1
+        if h is not None:
+            sweep.append(h)
+    if not sweep:
+        raise _NoOverlap()
+    sep = dict(kappa_deg=2 * kappa_step_deg, log_sigma=2 * math.log(sigma_ratio))
+    ranked = sorted(sweep, key=lambda h: -h.score)
+    top = _distinct_top(ranked, keep, shift=3 * 2 * tie_cell * ranked[0].sigma, **sep)
+    sweep_best = top[0]
+    # the runner-up is a genuinely different answer, not a neighbour in the winner's basin
+    runner_up = next((h for h in ranked if h.distinct_from(
+        sweep_best, kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
+        shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * sweep_best.sigma)), None)
+
+    # level 1: half the sweep's steps, then degrees and per cent, around each kept candidate
+    fine = _Scorer(moving, ref, tie_cell, 1)
+    refined: list[Hypothesis] = []
+    for h in top:
+        cur = h
+        for dk_deg, ratio in ((kappa_step_deg / 2, sigma_ratio ** 0.5), (1.0, 1.02),
+                              (0.5, 1.01)):
+            local = [cur]
+            for dk in (-dk_deg, 0.0, dk_deg):
+                for ds in (1 / ratio, 1.0, ratio):
+                    if dk == 0.0 and ds == 1.0 and cur.level == 1:
+                        continue
+                    cand = fine.score(cur.kappa + math.radians(dk), cur.sigma * ds)
+                    n_hyp += 1
+                    if cand is not None:
+                        local.append(cand)
+            level1 = [c for c in local if c.level == 1]
+            cur = max(level1, key=lambda c: c.score) if level1 else cur
+        if cur.level == 1:
+            refined.append(cur)
+    refined.sort(key=lambda c: -c.score)
+    best = refined[0] if refined else replace(sweep_best, level=1)
+    return SearchResult(best, runner_up, sweep_best, (tuple(top), tuple(refined)), n_hyp)
+
+
+class _NoOverlap(Exception):
+    """No hypothesis overlaps the reference by the minimum share of the block."""
