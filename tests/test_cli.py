@@ -60,10 +60,12 @@ def test_register_writes_result_and_points(scene_files, tmp_path, capsys):
 
 def test_not_confident_exits_3_and_still_writes_result(scene_files, tmp_path, capsys):
     d, scene = scene_files
+    # a rotation the translation-only method cannot recover and must not answer confidently
     rotated = Transform.from_parameters(kappa=np.radians(25)).apply(scene.tie_mov)
     write_xyz(tmp_path / "rot.xyz", rotated)
     out = tmp_path / "RESULT.json"
-    code, stdout, _ = run(["register", tmp_path / "rot.xyz", d / "lidar.laz", "-o", out], capsys)
+    code, stdout, _ = run(["register", tmp_path / "rot.xyz", d / "lidar.laz", "-o", out,
+                           "--coarse", "pomf"], capsys)
     assert code == 3
     assert json.loads(out.read_text())["confident"] is False
     assert "confident:   NO" in stdout
