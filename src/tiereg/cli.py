@@ -270,20 +270,24 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .demo import run_demo
 
     outcome = run_demo(args.out, seed=args.seed, progress=_progress_factory(args.quiet))
     r = outcome.result
-    t_true = outcome.T_ref_mov_true.translation
-    t_rec = r.T_ref_mov.translation
+    true, est = outcome.T_ref_mov_true.parameters(), r.T_ref_mov.parameters()
+    centre_true, centre_est = outcome.block_centre_true, outcome.block_centre_est
     print("tiereg demo: Autzen 2010 lidar (110,000 points, feet) and 1,500 tie points made from "
-          "it with a known shift")
-    print(f"{'':12}{'x':>14}{'y':>14}{'z':>12}")
-    print(f"{'truth':12}{t_true[0]:14.3f}{t_true[1]:14.3f}{t_true[2]:12.3f}")
-    print(f"{'recovered':12}{t_rec[0]:14.3f}{t_rec[1]:14.3f}{t_rec[2]:12.3f}")
+          "it with a known transform, registered with no initial guess")
+    print(f"{'':11}{'scale':>10}{'kappa deg':>11}{'block centre x':>17}{'y':>14}{'z':>10}")
+    for name, p, c in (("truth", true, centre_true), ("recovered", est, centre_est)):
+        print(f"{name:11}{p.scale:10.5f}{np.degrees(p.kappa):11.3f}{c[0]:17.3f}{c[1]:14.3f}"
+              f"{c[2]:10.3f}")
     e = outcome.error
-    print(f"{'error':12}{e[0]:14.3f}{e[1]:14.3f}{e[2]:12.3f}   "
-          f"(horizontal {outcome.error_cells:.3f} cell of {r.cell_size:g} ft)")
+    print(f"{'error':11}{est.scale / true.scale - 1:10.2e}"
+          f"{np.degrees(est.kappa - true.kappa):11.3f}{e[0]:17.3f}{e[1]:14.3f}{e[2]:10.3f}"
+          f"   (horizontal {outcome.error_cells:.3f} cell of {r.cell_size:g} ft)")
     print(_summary(r))
     print(f"wrote {Path(args.out) / 'RESULT.json'}, tiepoints.xyz, truth.json")
     return EXIT_OK if r.confident else EXIT_NOT_CONFIDENT
@@ -328,7 +332,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"register": _cmd_register, "simulate": _cmd_simulate, "apply": _cmd_apply, "grid": _cmd_grid,
+COMMANDS = {"register": _cmd_register, "simulate": _cmd_simulate, "apply": _cmd_apply,
+            "grid": _cmd_grid,
             "info": _cmd_info, "demo": _cmd_demo}
 
 

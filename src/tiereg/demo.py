@@ -36,8 +36,10 @@ def sample_lidar() -> Path:
 class DemoOutcome:
     result: RegistrationResult
     T_ref_mov_true: Transform
-    error: np.ndarray  # recovered - true translation at the tie-point centroid (file units)
+    error: np.ndarray  # recovered - true position of the tie-point centroid (file units)
     error_cells: float  # horizontal error in grid cells
+    block_centre_true: np.ndarray  # the tie-point centroid mapped by the truth
+    block_centre_est: np.ndarray  # ... and by the result
 
 
 def make_tie_points(lidar_xyz: np.ndarray, *, seed: int = 0) -> np.ndarray:
@@ -69,5 +71,7 @@ def run_demo(out_dir: str | Path, *, seed: int = 0,
     result = register(tie_path, lidar, progress=progress)
     write_text_atomic(out / "RESULT.json", result.to_json() + "\n")
     centre = tie.mean(axis=0, keepdims=True)
-    error = (result.T_ref_mov.apply(centre) - truth.apply(centre))[0]
-    return DemoOutcome(result, truth, error, float(np.hypot(error[0], error[1]) / result.cell_size))
+    c_true, c_est = truth.apply(centre)[0], result.T_ref_mov.apply(centre)[0]
+    error = c_est - c_true
+    return DemoOutcome(result, truth, error, float(np.hypot(error[0], error[1]) / result.cell_size),
+                       c_true, c_est)

@@ -102,7 +102,10 @@ def register_similarity(
     if best.overlap < MIN_OVERLAP:
         reasons.append(f"small overlap ({best.overlap:.0%} of the tie points)")
     confident = not reasons
-    confidence = float(np.clip(best.ncc, 0, 1) * np.clip((ratio - 1) / 0.5, 0, 1))
+    # the stronger of the two kinds of evidence: a distinct peak, or heights explained
+    distinct = np.clip((ratio - 1) / 0.5, 0, 1)
+    fit_quality = np.clip(1 - residual_ratio / (2 * MAX_RESIDUAL_RATIO), 0, 1)
+    confidence = float(np.clip(best.ncc, 0, 1) * max(distinct, fit_quality))
     if not confident:
         confidence = min(confidence, 0.49)
 
