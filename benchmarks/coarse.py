@@ -50,8 +50,9 @@ from tiereg.transform import Transform  # noqa: E402
 WORK = HERE / "work" / "coarse"
 RESULTS = HERE / "results"
 SCALES = (0.25, 0.5, 1.0, 2.0, 3.2808, 4.0)  # model units per reference unit; 3.2808: feet
-HEADINGS_PER_SCALE = 4  # one per quadrant, random inside it
-TIEREG_METHODS = ("pomf", "auto")
+HEADINGS_PER_SCALE = 3  # one per third of the circle, random inside it
+TIEREG_METHODS = ("auto", "search", "qafmt", "afmt", "fmt", "qafmt-classic", "afmt-classic",
+                  "fmt-classic", "pomf")
 HEADING_TOL_DEG, SCALE_TOL = 2.0, 0.02
 OPEN3D_EVERY = 4  # Open3D runs on every fourth case
 
@@ -111,7 +112,7 @@ def load_world(name: str, spec: SceneSpec):
 def make_cases(name: str, index0: int, rng: np.random.Generator, quick: bool) -> list[Case]:
     cases = []
     scales = (1.0, 3.2808, 0.5) if quick else SCALES
-    per = 2 if quick else HEADINGS_PER_SCALE
+    per = 2 if quick else HEADINGS_PER_SCALE  # one heading per 360/per degrees
     for scale in scales:
         for q in range(per):
             heading = float(rng.uniform(0, 360 / per) + q * 360 / per)
@@ -176,46 +177,63 @@ def run_open3d(scene, ref: Reference, cell: float) -> tuple[Transform, float, st
 
 
 # ---------------------------------------------------------------------------------------- run
-def run(quick: bool, with_open3d: bool) -> tuple[list[Outcome], dict]:
-    rng = np.random.default_rng(2026)
+def run(quick: bool, with_open3d: bool, workers: int,
+        methods: tuple[str, ...] = TIEREG_METHODS) -> tuple[list[Outcome], dict]:
+    """All scenes, ``workers`` at a time (each scene in its own process)."""
+    WORK.mkdir(parents=True, exist_ok=True)
+    specs = scene_specs(quick)  # also fills LOOKALIKE_KIND, which the workers need passed
+    jobs = [(i, name, spec, quick, with_open3d, LOOKALIKE_KIND.get(name, spec.kind), methods)
+            for i, (name, spec) in enumerate(specs.items())]
+    if workers > 1:
+        from multiprocessing import get_context
+
+        with get_context("spawn").Pool(workers) as pool:
+            parts = pool.map(run_scene, jobs, chunksize=1)
+    else:
+        parts = [run_scene(job) for job in jobs]
+    outcomes = [o for part, _ in parts for o in part]
+    meta = {"scenes": {k: v for _, m in parts for k, v in m.items()}}
+    return outcomes, meta
+
+
+def run_scene(job) -> tuple[list[Outcome], dict]:
+    index, name, spec, quick, with_open3d, lookalike, methods = job
+    rng = np.random.default_rng([2026, index])
     outcomes: list[Outcome] = []
     meta: dict = {"scenes": {}}
-    WORK.mkdir(parents=True, exist_ok=True)
-    for name, spec in scene_specs(quick).items():
-        t0 = time.perf_counter()
-        world = load_world(name, spec)
-        base_scene = make_scene(spec, world=world)
-        laz = WORK / f"{name}-{spec.seed}{'-quick' if quick else ''}"
-        if not (laz / "reference.laz").exists():
-            write_scene(base_scene, laz)
-        ref_source = open_points(laz / "reference.laz")
-        cell = cell_size_from_density(base_scene.tie_points.true_xyz)
-        # first returns, at an eighth of the tie cell (what `tiereg register` would choose)
-        ref = prepare_reference(ref_source, base_cell=cell / 8)
-        meta["scenes"][name] = {"kind": spec.kind, "cell": cell,
-                                "lidar_points": ref_source.info.count,
-                                "tie_points": len(base_scene.moving),
-                                "setup_s": round(time.perf_counter() - t0, 1)}
-        cases = make_cases(name, len(outcomes), rng, quick)
-        for case in cases:
-            case_spec = replace(spec, hidden=case.hidden, overlap=case.overlap)
-            if case.negative:  # tie points from a synthetic world of the same character
-                case_spec = replace(case_spec, kind=LOOKALIKE_KIND.get(name, spec.kind),
-                                    tie_world_seed=spec.seed + 1000)
-            scene = make_scene(case_spec, world=world)
-            for method in TIEREG_METHODS:
-                T, conf, sec, note = run_tiereg(method, scene, ref)
-                outcomes.append(_outcome(f"tiereg {method}", case, scene, T, conf, sec, note,
-                                         cell))
-            for peer in PEERS_IMAGE:
-                T, sec, note = run_image_peer(peer, scene, ref, cell)
-                outcomes.append(_outcome(peer, case, scene, T, None, sec, note, cell))
-            if with_open3d and case.index % OPEN3D_EVERY == 0:  # the slowest peer: a sample
-                T, sec, note = run_open3d(scene, ref, cell)
-                outcomes.append(_outcome("open3d_fpfh_ransac", case, scene, T, None, sec, note,
-                                         cell))
-        print(f"{name}: {len(cases)} cases done", file=sys.stderr)
-    return outcomes, meta
+    t0 = time.perf_counter()
+    world = load_world(name, spec)
+    base_scene = make_scene(spec, world=world)
+    laz = WORK / f"{name}-{spec.seed}{'-quick' if quick else ''}"
+    if not (laz / "reference.laz").exists():
+        write_scene(base_scene, laz)
+    ref_source = open_points(laz / "reference.laz")
+    cell = cell_size_from_density(base_scene.tie_points.true_xyz)
+    # first returns, at an eighth of the tie cell (what `tiereg register` would choose)
+    ref = prepare_reference(ref_source, base_cell=cell / 8)
+    meta["scenes"][name] = {"kind": spec.kind, "cell": cell,
+                            "lidar_points": ref_source.info.count,
+                            "tie_points": len(base_scene.moving),
+                            "setup_s": round(time.perf_counter() - t0, 1)}
+    cases = make_cases(name, 1000 * index, rng, quick)
+    for case in cases:
+        case_spec = replace(spec, hidden=case.hidden, overlap=case.overlap)
+        if case.negative:  # tie points from a synthetic world of the same character
+            case_spec = replace(case_spec, kind=lookalike, tie_world_seed=spec.seed + 1000)
+        scene = make_scene(case_spec, world=world)
+        for method in methods:
+            T, conf, sec, note = run_tiereg(method, scene, ref)
+            outcomes.append(_outcome(f"tiereg {method}", case, scene, T, conf, sec, note,
+                                     cell))
+        for peer in PEERS_IMAGE:
+            T, sec, note = run_image_peer(peer, scene, ref, cell)
+            outcomes.append(_outcome(peer, case, scene, T, None, sec, note, cell))
+        if with_open3d and case.index % OPEN3D_EVERY == 0:  # the slowest peer: a sample
+            T, sec, note = run_open3d(scene, ref, cell)
+            outcomes.append(_outcome("open3d_fpfh_ransac", case, scene, T, None, sec, note,
+                                     cell))
+    print(f"{name}: {len(cases)} cases done", file=sys.stderr)
+    return outcomes, meta["scenes"]
 
 
 def _outcome(method, case, scene, T, confident, seconds, note, cell) -> Outcome:
@@ -274,7 +292,8 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
                                  f"{v['lidar_points']:,} lidar points, cell {v['cell']:g} m)"
                                  for k, v in meta["scenes"].items()),
         f"- cases per scene: scales {', '.join(f'{s:g}' for s in SCALES)} x "
-        f"{HEADINGS_PER_SCALE} headings (one per quadrant, random inside), random shift, "
+        f"{HEADINGS_PER_SCALE} headings (one per {360 // HEADINGS_PER_SCALE} deg sector, random "
+        "inside), random shift, "
         "overlap U(0.3, 1), small random tilt; plus one negative case per scene (tie points "
         "from another world)",
         f"- correct: heading within {HEADING_TOL_DEG:g} deg, scale within "
@@ -359,9 +378,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="a few cases, results to work/")
     parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D baseline")
+    parser.add_argument("--workers", type=int, default=2, help="scenes run in parallel")
+    parser.add_argument("--methods", default=",".join(TIEREG_METHODS),
+                        help="tiereg coarse methods, comma-separated")
     args = parser.parse_args()
     t0 = time.perf_counter()
-    outcomes, meta = run(args.quick, with_open3d=not args.no_open3d)
+    outcomes, meta = run(args.quick, with_open3d=not args.no_open3d, workers=args.workers,
+                         methods=tuple(args.methods.split(",")))
     write_report(outcomes, meta, WORK if args.quick else RESULTS, time.perf_counter() - t0)
     print((WORK if args.quick else RESULTS) / "coarse.md")
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from .result import Candidate, CoarseResult
 from .translation import register_translation
 
-METHODS = ("auto", "search", "pomf", "none")
+METHODS = ("auto", "search", "fmt", "afmt", "qafmt", "fmt-classic", "afmt-classic",
+           "qafmt-classic", "pomf", "none")
 
 __all__ = ["METHODS", "Candidate", "CoarseResult", "register_translation"]

@@ -179,20 +179,36 @@ def search(
         sweep_best, kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
         shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * sweep_best.sigma)), None)
 
-    # level 1: half the sweep's steps, then degrees and per cent, around each kept candidate
+    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell,
+                                          first_steps=(kappa_step_deg / 2, sigma_ratio ** 0.5))
+    n_hyp += n_refine
+    best = refined[0] if refined else replace(sweep_best, level=1)
+    return SearchResult(best, runner_up, sweep_best, (tuple(top), tuple(refined)), n_hyp)
+
+
+def refine_candidates(
+    moving: np.ndarray,
+    ref: Reference,
+    candidates: list[Hypothesis],
+    *,
+    tie_cell: float,
+    first_steps: tuple[float, float] = (3.75, 2 ** 0.1),
+) -> tuple[list[Hypothesis], int]:
+    """Refine each candidate on the finest level: a 3 x 3 (heading, scale) neighbourhood with
+    ``first_steps`` (degrees, scale ratio), then 1 deg / 2 %, then 0.5 deg / 1 %; best first."""
     fine = _Scorer(moving, ref, tie_cell, 1)
     refined: list[Hypothesis] = []
-    for h in top:
+    n = 0
+    for h in candidates:
         cur = h
-        for dk_deg, ratio in ((kappa_step_deg / 2, sigma_ratio ** 0.5), (1.0, 1.02),
-                              (0.5, 1.01)):
+        for dk_deg, ratio in (first_steps, (1.0, 1.02), (0.5, 1.01)):
             local = [cur]
             for dk in (-dk_deg, 0.0, dk_deg):
                 for ds in (1 / ratio, 1.0, ratio):
                     if dk == 0.0 and ds == 1.0 and cur.level == 1:
                         continue
                     cand = fine.score(cur.kappa + math.radians(dk), cur.sigma * ds)
-                    n_hyp += 1
+                    n += 1
                     if cand is not None:
                         local.append(cand)
             level1 = [c for c in local if c.level == 1]
@@ -200,8 +216,7 @@ def search(
         if cur.level == 1:
             refined.append(cur)
     refined.sort(key=lambda c: -c.score)
-    best = refined[0] if refined else replace(sweep_best, level=1)
-    return SearchResult(best, runner_up, sweep_best, (tuple(top), tuple(refined)), n_hyp)
+    return refined, n
 
 
 class _NoOverlap(Exception):

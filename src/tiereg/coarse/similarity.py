@@ -14,15 +14,33 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
+from ..grid import GridSpec, rasterize
 from ..reference import Reference
 from ..robust import nmad
-from ..transform import Transform
+from ..transform import Transform, rotation_matrix
+from .fourier_mellin import rotation_scale_candidates
+from .preprocess import prepare
 from .refine import SurfaceSampler, fit_to_surface
 from .result import Candidate, CoarseResult
-from .search import MIN_OVERLAP, Hypothesis, _NoOverlap, search
+from .search import (
+    MIN_OVERLAP,
+    RIVAL_KAPPA_DEG,
+    RIVAL_SCALE,
+    RIVAL_SHIFT_TIE_CELLS,
+    Hypothesis,
+    SearchResult,
+    _distinct_top,
+    _NoOverlap,
+    _Scorer,
+    refine_candidates,
+    search,
+)
+
+FREQUENCY_METHODS = ("fmt", "afmt", "qafmt", "fmt-classic", "afmt-classic", "qafmt-classic")
 
 MIN_RIVAL_RATIO = 1.2  # best sweep score over the best genuinely different one
 MIN_NCC = 0.45
@@ -30,19 +48,77 @@ MIN_NCC = 0.45
 # (residual spread below a quarter of the surface's own spread; right answers on the simulated
 # scenes: 0.08-0.16, near misses 0.53 or more, tie points from elsewhere 0.88 or more)
 MAX_RESIDUAL_RATIO, MIN_NCC_EXPLAINED, MIN_RIVAL_RATIO_EXPLAINED = 0.25, 0.6, 1.05
+MAX_RESIDUAL_RATIO_ANY = 1.2  # heights worse than the surface's own spread: never confident
 
 
 def _place(xyz: np.ndarray):
-    xy, z = xyz[:, :2], xyz[:, 2]
+    """Parameters ``(kappa, ln sigma, tx, ty, omega, phi)`` -> placed points (no height offset).
+
+    The tilts are small corrections about the block centre (the local origin): a block that is
+    not quite level must not bend the heading, scale and shift to fit the heights.
+    """
 
     def place(p: np.ndarray) -> np.ndarray:
-        kappa, log_sigma, tx, ty = p
-        sigma = math.exp(log_sigma)
-        c, s = math.cos(kappa), math.sin(kappa)
-        q = sigma * (xy @ np.array([[c, s], [-s, c]]))
-        return np.column_stack([q[:, 0] + tx, q[:, 1] + ty, sigma * z])
+        kappa, log_sigma, tx, ty, omega, phi = p
+        R = math.exp(log_sigma) * rotation_matrix(omega, phi, kappa)
+        q = xyz @ R.T
+        q[:, 0] += tx
+        q[:, 1] += ty
+        return q
 
     return place
+
+
+def frequency_search(
+    moving: np.ndarray,
+    ref: Reference,
+    *,
+    tie_cell: float,
+    method: str,
+    sigma_range: tuple[float, float] = (0.25, 4.0),
+) -> SearchResult:
+    """Candidates from a Fourier-Mellin method on a 2x pyramid of reference cells, verified.
+
+    At each level ``s`` the reference is gridded at ``tie_cell * s`` and the tie points at
+    ``tie_cell`` (model units), so the method only has to find the residual scale within the
+    level's octave. Each candidate is scored by masked NCC, the best distinct ones refined.
+    """
+    name, robust = method.removesuffix("-classic"), not method.endswith("-classic")
+    n_levels = int(math.ceil(math.log2(sigma_range[1] / sigma_range[0]))) + 1
+    scorer = _Scorer(moving, ref, tie_cell, 2)
+    hyps: list[Hypothesis] = []
+    n = 0
+    lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
+    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], tie_cell)
+    mgrid = rasterize(moving, spec, stats=("median",))
+    mov = prepare(mgrid["median"], mgrid.mask,
+                  bandpass_sigma_cells=6.0 if robust else 0.0)
+    for level in range(n_levels):
+        s_level = sigma_range[0] * 2.0**level
+        grid = ref.grid(tie_cell * s_level)
+        s_eff = grid.spec.cell_size / tie_cell  # the quantized cell's own scale
+        rgrid = prepare(grid["mean"], grid.mask, bandpass_sigma_cells=6.0 if robust else 0.0)
+        if rgrid.support.sum() < 12:
+            continue
+        for c in rotation_scale_candidates(rgrid, mov, method=name, robust=robust):
+            sigma = c.scale * s_eff
+            if not sigma_range[0] / 1.5 <= sigma <= sigma_range[1] * 1.5:
+                continue
+            h = scorer.score(c.theta, sigma)
+            n += 1
+            if h is not None:
+                hyps.append(h)
+    if not hyps:
+        raise _NoOverlap()
+    ranked = sorted(hyps, key=lambda h: -h.score)
+    top = _distinct_top(ranked, 6, kappa_deg=5.0, log_sigma=math.log(1.1),
+                        shift=6 * tie_cell * ranked[0].sigma)
+    rival = next((h for h in ranked if h.distinct_from(
+        top[0], kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
+        shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * top[0].sigma)), None)
+    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell)
+    best = refined[0] if refined else top[0]
+    return SearchResult(best, rival, top[0], (tuple(top), tuple(refined)), n + n_refine)
 
 
 def register_similarity(
@@ -52,13 +128,36 @@ def register_similarity(
     tie_cell: float,
     sigma_range: tuple[float, float] = (0.25, 4.0),
     method: str = "search",
+    seeds: list[tuple[float, float]] | None = None,
 ) -> CoarseResult:
-    """Heading, scale, shift and height offset of centred tie points against a reference."""
+    """Heading, scale, shift and height offset of centred tie points against a reference.
+
+    ``method``: ``"search"`` (exhaustive sweep), a Fourier-Mellin method (``fmt``, ``afmt``,
+    ``qafmt``, robust; ``*-classic``: as published), or ``"auto"`` (``qafmt``, then the sweep
+    seeded with its candidates unless its answer is confident and explains the heights).
+    """
+    seeds = list(seeds or [])
     t0 = time.perf_counter()
+    if method == "auto":  # frequency domain first; the exhaustive sweep when that is not enough
+        quick = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
+                                    sigma_range=sigma_range, method="qafmt")
+        if quick.confident and quick.details.get("residual_ratio", 1.0) <= MAX_RESIDUAL_RATIO:
+            return replace(quick, method="auto", seconds=time.perf_counter() - t0,
+                           details={**quick.details, "decided_by": "qafmt"})
+        seeds = [(math.radians(d["kappa_deg"]), d["scale"])
+                 for d in quick.details.get("verified", [])]
+        full = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
+                                   sigma_range=sigma_range, method="search", seeds=seeds)
+        return replace(full, method="auto", seconds=time.perf_counter() - t0,
+                       details={**full.details, "decided_by": "search"})
     try:
-        # level, unscaled data are common: the identity is always among the hypotheses
-        found = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
-                       seeds=[(0.0, 1.0)] if sigma_range[0] <= 1.0 <= sigma_range[1] else None)
+        if method in FREQUENCY_METHODS:
+            found = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method=method,
+                                     sigma_range=sigma_range)
+        else:
+            # level, unscaled data are common: the identity is always among the hypotheses
+            found = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
+                           seeds=[(0.0, 1.0), *seeds])
     except _NoOverlap:
         return CoarseResult(Transform.identity(), method, False, 0.0, tie_cell, 0.0, 1.0, 0.0,
                             0.0, (), ("no heading and scale in the searched range makes the tie "
@@ -68,9 +167,10 @@ def register_similarity(
     sampler = SurfaceSampler.from_grid(reference.base)
     cell = tie_cell * best.sigma
     fit = fit_to_surface(_place(moving_xyz), sampler,
-                         np.array([best.kappa, math.log(best.sigma), best.tx, best.ty]),
-                         np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2]))
-    kappa, log_sigma, tx, ty = fit.params
+                         np.array([best.kappa, math.log(best.sigma), best.tx, best.ty, 0.0, 0.0]),
+                         np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
+                                   math.radians(0.2), math.radians(0.2)]))
+    kappa, log_sigma, tx, ty, omega, phi = fit.params
     moved = math.hypot(tx - best.tx, ty - best.ty) / cell
     turned = abs(math.degrees(kappa - best.kappa))
     rescaled = abs(log_sigma - math.log(best.sigma))
@@ -78,14 +178,14 @@ def register_similarity(
     # the fit descends from the search's pose; grid scores can drift a few per cent in scale
     # through lattice aliasing, which the point-based fit corrects: only runaways are refused
     if fit.converged and moved <= 5.0 and turned <= 10.0 and rescaled <= math.log(1.15):
-        T = Transform.from_parameters(scale=math.exp(log_sigma), kappa=kappa,
-                                      translation=(tx, ty, fit.tz))
+        T = Transform.from_parameters(scale=math.exp(log_sigma), kappa=kappa, omega=omega,
+                                      phi=phi, translation=(tx, ty, fit.tz))
     else:
         T = best.transform(tz=fit.tz if np.isfinite(fit.tz) else 0.0)
         reasons.append("the continuous refinement did not settle near the search's answer")
 
     # how much of the height variation the pose explains: residual spread over surface spread
-    placed = _place(moving_xyz)(np.array([kappa, log_sigma, tx, ty]))
+    placed = _place(moving_xyz)(fit.params)
     z_surf, _, _, ok = sampler.sample(placed[:, 0], placed[:, 1])
     spread = nmad(z_surf[ok]) if ok.sum() > 10 else float("nan")
     residual_ratio = fit.sigma0 / spread if spread and np.isfinite(spread) else float("inf")
@@ -94,11 +194,19 @@ def register_similarity(
     ratio = found.sweep_best.score / rival if rival > 0 else float("inf")
     explained = (residual_ratio <= MAX_RESIDUAL_RATIO and best.ncc >= MIN_NCC_EXPLAINED
                  and ratio >= MIN_RIVAL_RATIO_EXPLAINED)
-    if ratio < MIN_RIVAL_RATIO and not explained:
+    if method in FREQUENCY_METHODS and not explained:
+        # a few candidates say nothing about the hypotheses never tried: the heights must be
+        # explained, a rival ratio among candidates is not evidence
+        reasons.append("the frequency-domain candidates do not explain the heights (residual "
+                       f"ratio {residual_ratio:.2f} > {MAX_RESIDUAL_RATIO})")
+    elif ratio < MIN_RIVAL_RATIO and not explained:
         reasons.append(f"another heading, scale or position fits almost as well (best/rival "
                        f"{ratio:.2f} < {MIN_RIVAL_RATIO})")
     if best.ncc < MIN_NCC:
         reasons.append(f"weak correlation at the best pose (NCC {best.ncc:.2f} < {MIN_NCC})")
+    if residual_ratio > MAX_RESIDUAL_RATIO_ANY:
+        reasons.append("the tie points' heights disagree with the reference surface at the "
+                       f"found pose (residual spread {residual_ratio:.2f} x the surface's own)")
     if best.overlap < MIN_OVERLAP:
         reasons.append(f"small overlap ({best.overlap:.0%} of the tie points)")
     confident = not reasons
@@ -127,5 +235,7 @@ def register_similarity(
             "refinement": {"iterations": fit.iterations, "converged": fit.converged,
                            "sigma0": fit.sigma0, "n_used": fit.n_used},
             "residual_ratio": residual_ratio,
+            "verified": [{"kappa_deg": math.degrees(h.kappa), "scale": h.sigma, "score": h.score}
+                         for level in found.levels for h in level],
         },
     )
