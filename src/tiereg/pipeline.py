@@ -141,7 +141,7 @@ def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Trans
 
 
 def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
-    z, _, _, ok = sampler.sample(xyz_ref[:, 0], xyz_ref[:, 1])
+    z, ok = sampler.sample(xyz_ref[:, 0], xyz_ref[:, 1])
     return HeightStats.from_dz((z - xyz_ref[:, 2])[ok], len(xyz_ref))
 
 

@@ -18,36 +18,29 @@ from ..robust import nmad
 
 @dataclass(frozen=True)
 class SurfaceSampler:
-    """Bilinear heights and gradients of a grid surface at arbitrary positions."""
+    """Bilinear heights of a grid surface at arbitrary positions, with a validity mask."""
 
     grid: Grid
     values: np.ndarray
-    grad_row: np.ndarray
-    grad_col: np.ndarray
     valid: np.ndarray
 
     @classmethod
     def from_grid(cls, grid: Grid, *, stat: str = "mean") -> SurfaceSampler:
         filled, support = fill_normalized(grid[stat], grid.mask, sigma_cells=0.7)
-        valid = ndimage.binary_erosion(support & grid.mask | support, iterations=1)
-        g_row, g_col = np.gradient(filled)
-        return cls(grid, filled, g_row, g_col, valid)
+        valid = ndimage.binary_erosion(support, iterations=1)
+        return cls(grid, filled, valid)
 
-    def sample(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                            np.ndarray]:
-        """Heights ``Z``, gradients ``dZ/dx``, ``dZ/dy`` (per map unit) and a validity mask."""
+    def sample(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Heights ``Z`` at the positions and whether each lies on valid surface."""
         spec = self.grid.spec
         rows, cols = spec.rowcol(x, y)
         coords = np.vstack([rows, cols])
         z = ndimage.map_coordinates(self.values, coords, order=1, mode="nearest")
-        gr = ndimage.map_coordinates(self.grad_row, coords, order=1, mode="nearest")
-        gc = ndimage.map_coordinates(self.grad_col, coords, order=1, mode="nearest")
         ok = ndimage.map_coordinates(self.valid.astype(np.float64), coords, order=0,
                                      mode="constant", cval=0.0) > 0.5
         inside = (rows >= 0) & (rows <= spec.shape[0] - 1) & (cols >= 0) & (
             cols <= spec.shape[1] - 1)
-        c = spec.cell_size
-        return z, gc / c, -gr / c, ok & inside
+        return z, ok & inside
 
 
 @dataclass(frozen=True)
@@ -61,7 +54,7 @@ class TranslationFit:
 
 def height_offset(xyz: np.ndarray, sampler: SurfaceSampler, shift_xy: np.ndarray) -> float:
     """Median of ``Z_ref(x + t) - z`` over the points that land on valid reference cells."""
-    z, _, _, ok = sampler.sample(xyz[:, 0] + shift_xy[0], xyz[:, 1] + shift_xy[1])
+    z, ok = sampler.sample(xyz[:, 0] + shift_xy[0], xyz[:, 1] + shift_xy[1])
     if not ok.any():
         return float("nan")
     return float(np.median(z[ok] - xyz[ok, 2]))
@@ -108,7 +101,7 @@ def fit_to_surface(
 
     def residuals(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = place(params)
-        z, _, _, ok = sampler.sample(pts[:, 0], pts[:, 1])
+        z, ok = sampler.sample(pts[:, 0], pts[:, 1])
         return z - pts[:, 2], ok
 
     r0, use = residuals(p0)

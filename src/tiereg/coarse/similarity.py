@@ -186,7 +186,7 @@ def register_similarity(
 
     # how much of the height variation the pose explains: residual spread over surface spread
     placed = _place(moving_xyz)(fit.params)
-    z_surf, _, _, ok = sampler.sample(placed[:, 0], placed[:, 1])
+    z_surf, ok = sampler.sample(placed[:, 0], placed[:, 1])
     spread = nmad(z_surf[ok]) if ok.sum() > 10 else float("nan")
     residual_ratio = fit.sigma0 / spread if spread and np.isfinite(spread) else float("inf")
 
