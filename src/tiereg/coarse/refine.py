@@ -60,6 +60,9 @@ def height_offset(xyz: np.ndarray, sampler: SurfaceSampler, shift_xy: np.ndarray
     return float(np.median(z[ok] - xyz[ok, 2]))
 
 
+EDGE_MARGIN_CELLS = 8  # of the surface grid (an eighth of a tie cell each: one tie cell)
+
+
 def _tukey_loss(r: np.ndarray, scale: float, c: float = 4.685) -> np.ndarray:
     """Tukey's biweight loss, bounded at ``c^2/6``: blunders cost a constant."""
     a = np.clip(np.abs(r) / (c * scale), 0.0, 1.0)
@@ -105,6 +108,15 @@ def fit_to_surface(
         return z - pts[:, 2], ok
 
     r0, use = residuals(p0)
+    # only points well inside the surface count: near its edge a move that pushes points out
+    # would be penalised and one that pulls them in not, which biases scale and shift
+    inner = ndimage.binary_erosion(sampler.valid, iterations=EDGE_MARGIN_CELLS)
+    pts0 = place(p0)
+    rows, cols = sampler.grid.spec.rowcol(pts0[:, 0], pts0[:, 1])
+    deep = ndimage.map_coordinates(inner.astype(np.float64), np.vstack([rows, cols]), order=0,
+                                   mode="constant", cval=0.0) > 0.5
+    if (use & deep).sum() >= 10:
+        use = use & deep
     n0 = int(use.sum())
     if n0 < 10:
         return SurfaceFit(p0, float("nan"), float("nan"), n0, 0, False)

@@ -195,7 +195,11 @@ def refine_candidates(
     first_steps: tuple[float, float] = (3.75, 2 ** 0.1),
 ) -> tuple[list[Hypothesis], int]:
     """Refine each candidate on the finest level: a 3 x 3 (heading, scale) neighbourhood with
-    ``first_steps`` (degrees, scale ratio), then 1 deg / 2 %, then 0.5 deg / 1 %; best first."""
+    ``first_steps`` (degrees, scale ratio), then 1 deg / 2 %, then 0.5 deg / 1 %; best first.
+
+    Locally the candidates are compared by NCC alone: the overlap weight that keeps the sweep
+    away from spurious small overlaps would here favour shrinking a partly covered block.
+    """
     fine = _Scorer(moving, ref, tie_cell, 1)
     refined: list[Hypothesis] = []
     n = 0
@@ -212,7 +216,7 @@ def refine_candidates(
                     if cand is not None:
                         local.append(cand)
             level1 = [c for c in local if c.level == 1]
-            cur = max(level1, key=lambda c: c.score) if level1 else cur
+            cur = max(level1, key=lambda c: c.ncc) if level1 else cur
         if cur.level == 1:
             refined.append(cur)
     refined.sort(key=lambda c: -c.score)
