@@ -367,6 +367,7 @@ def plot(outcomes: list[Outcome], path: Path) -> None:
             title="success against heading")
     ax2.set(xlabel="hidden scale (model units per metre)", ylabel="correct (%)", xscale="log",
             ylim=(-5, 105), title="success against scale")
+    ax2.minorticks_off()  # log-axis minor labels would overprint the scale labels
     ax2.set_xticks(SCALES, [f"{s:g}" for s in SCALES])
     ax1.legend(fontsize=8)
     fig.tight_layout()
