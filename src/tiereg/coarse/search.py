@@ -58,7 +58,7 @@ class Hypothesis:
         return dk > kappa_deg or ds > log_sigma or dt > shift
 
 
-class _Scorer:
+class Scorer:
     """Scores hypotheses at one pyramid level; caches prepared reference grids by cell."""
 
     def __init__(self, moving: np.ndarray, ref: Reference, tie_cell: float, level: int, *,
@@ -122,7 +122,7 @@ class SearchResult:
     n_hypotheses: int
 
 
-def _distinct_top(hyps: list[Hypothesis], k: int, *, kappa_deg: float, log_sigma: float,
+def distinct_top(hyps: list[Hypothesis], k: int, *, kappa_deg: float, log_sigma: float,
                   shift: float) -> list[Hypothesis]:
     out: list[Hypothesis] = []
     for h in sorted(hyps, key=lambda h: -h.score):
@@ -153,7 +153,7 @@ def search(
     hypotheses, e.g. from a frequency-domain method, refined like the sweep's own candidates.
     """
     n_hyp = 0
-    sweep_scorer = _Scorer(moving, ref, tie_cell, 2, stat="mean")
+    sweep_scorer = Scorer(moving, ref, tie_cell, 2, stat="mean")
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
     block_area = float(np.prod(hi - lo))
     (x0, y0, x1, y1) = ref.base.spec.bounds
@@ -169,10 +169,10 @@ def search(
         if h is not None:
             sweep.append(h)
     if not sweep:
-        raise _NoOverlap()
+        raise NoOverlap()
     sep = dict(kappa_deg=2 * kappa_step_deg, log_sigma=2 * math.log(sigma_ratio))
     ranked = sorted(sweep, key=lambda h: -h.score)
-    top = _distinct_top(ranked, keep, shift=3 * 2 * tie_cell * ranked[0].sigma, **sep)
+    top = distinct_top(ranked, keep, shift=3 * 2 * tie_cell * ranked[0].sigma, **sep)
     sweep_best = top[0]
     # the runner-up is a genuinely different answer, not a neighbour in the winner's basin
     runner_up = next((h for h in ranked if h.distinct_from(
@@ -200,7 +200,7 @@ def refine_candidates(
     Locally the candidates are compared by NCC alone: the overlap weight that keeps the sweep
     away from spurious small overlaps would here favour shrinking a partly covered block.
     """
-    fine = _Scorer(moving, ref, tie_cell, 1)
+    fine = Scorer(moving, ref, tie_cell, 1)
     refined: list[Hypothesis] = []
     n = 0
     for h in candidates:
@@ -223,5 +223,5 @@ def refine_candidates(
     return refined, n
 
 
-class _NoOverlap(Exception):
+class NoOverlap(Exception):
     """No hypothesis overlaps the reference by the minimum share of the block."""

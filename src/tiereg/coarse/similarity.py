@@ -32,10 +32,10 @@ from .search import (
     RIVAL_SCALE,
     RIVAL_SHIFT_TIE_CELLS,
     Hypothesis,
+    NoOverlap,
+    Scorer,
     SearchResult,
-    _distinct_top,
-    _NoOverlap,
-    _Scorer,
+    distinct_top,
     refine_candidates,
     search,
 )
@@ -85,7 +85,7 @@ def frequency_search(
     """
     name, robust = method.removesuffix("-classic"), not method.endswith("-classic")
     n_levels = int(math.ceil(math.log2(sigma_range[1] / sigma_range[0]))) + 1
-    scorer = _Scorer(moving, ref, tie_cell, 2)
+    scorer = Scorer(moving, ref, tie_cell, 2)
     hyps: list[Hypothesis] = []
     n = 0
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
@@ -109,9 +109,9 @@ def frequency_search(
             if h is not None:
                 hyps.append(h)
     if not hyps:
-        raise _NoOverlap()
+        raise NoOverlap()
     ranked = sorted(hyps, key=lambda h: -h.score)
-    top = _distinct_top(ranked, 6, kappa_deg=5.0, log_sigma=math.log(1.1),
+    top = distinct_top(ranked, 6, kappa_deg=5.0, log_sigma=math.log(1.1),
                         shift=6 * tie_cell * ranked[0].sigma)
     rival = next((h for h in ranked if h.distinct_from(
         top[0], kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
@@ -158,7 +158,7 @@ def register_similarity(
             # level, unscaled data are common: the identity is always among the hypotheses
             found = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
                            seeds=[(0.0, 1.0), *seeds])
-    except _NoOverlap:
+    except NoOverlap:
         return CoarseResult(Transform.identity(), method, False, 0.0, tie_cell, 0.0, 1.0, 0.0,
                             0.0, (), ("no heading and scale in the searched range makes the tie "
                                       f"points overlap the reference by {MIN_OVERLAP:.0%}",),
