@@ -279,7 +279,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     true, est = outcome.T_ref_mov_true.parameters(), r.T_ref_mov.parameters()
     centre_true, centre_est = outcome.block_centre_true, outcome.block_centre_est
     print("tiereg demo: Autzen 2010 lidar (110,000 points, feet) and 1,500 tie points made from "
-          "it with a known transform, registered with no initial guess")
+          "it with a known shift, registered with no initial guess (translation search)")
     print(f"{'':11}{'scale':>10}{'kappa deg':>11}{'block centre x':>17}{'y':>14}{'z':>10}")
     for name, p, c in (("truth", true, centre_true), ("recovered", est, centre_est)):
         print(f"{name:11}{p.scale:10.5f}{np.degrees(p.kappa):11.3f}{c[0]:17.3f}{c[1]:14.3f}"
