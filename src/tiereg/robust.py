@@ -1,6 +1,6 @@
 """Robust statistics and weights: one home for the M-estimators used across tiereg.
 
-References: Huber (1964); Tukey's biweight (Beaton & Tukey 1974); the normalized median absolute
+References: Tukey's biweight (Beaton & Tukey 1974); the normalized median absolute
 deviation ``NMAD = 1.4826 * median(|r - median(r)|)`` (Hoehle & Hoehle 2009).
 """
 
@@ -20,13 +20,8 @@ def nmad(values: np.ndarray) -> float:
     return float(NMAD_FACTOR * np.median(np.abs(v - np.median(v))))
 
 
-def huber_weights(residuals: np.ndarray, scale: float, *, k: float = 1.345) -> np.ndarray:
-    """Huber weights ``min(1, k*scale/|r|)``."""
-    a = np.abs(residuals) / max(scale, 1e-12)
-    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-
-
-def tukey_weights(residuals: np.ndarray, scale: float, *, c: float = 4.685) -> np.ndarray:
-    """Tukey biweight ``(1 - (r/(c*scale))^2)^2`` inside ``c*scale``, 0 outside."""
-    a = np.abs(residuals) / max(scale, 1e-12) / c
-    return np.where(a < 1.0, (1.0 - a**2) ** 2, 0.0)
+def tukey_loss(residuals: np.ndarray, scale: float, *, c: float = 4.685) -> np.ndarray:
+    """Tukey's biweight loss ``(c^2/6)(1 - (1 - (r/(c*scale))^2)^3)``, bounded at ``c^2/6``:
+    a blunder costs a constant."""
+    a = np.clip(np.abs(residuals) / (c * max(scale, 1e-12)), 0.0, 1.0)
+    return (c**2 / 6.0) * (1.0 - (1.0 - a**2) ** 3)

@@ -204,12 +204,6 @@ class Transform:
         shifted += a @ origin + self.matrix[:3, 3]
         return shifted
 
-    def apply_xy(self, xy: np.ndarray, z: float = 0.0) -> np.ndarray:
-        """Map ``(N, 2)`` horizontal positions at height ``z``; returns ``(N, 2)``."""
-        xy = np.asarray(xy, dtype=np.float64)
-        pts = np.column_stack([xy, np.full(len(xy), z)])
-        return self.apply(pts)[:, :2]
-
     def isclose(self, other: Transform, *, atol_m: float = 1e-9, rtol: float = 1e-12) -> bool:
         return bool(np.allclose(self.matrix, other.matrix, atol=atol_m, rtol=rtol))
 

@@ -13,7 +13,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..grid import Grid, fill_normalized
-from ..robust import nmad
+from ..robust import nmad, tukey_loss
 
 
 @dataclass(frozen=True)
@@ -61,12 +61,6 @@ def height_offset(xyz: np.ndarray, sampler: SurfaceSampler, shift_xy: np.ndarray
 
 
 EDGE_MARGIN_CELLS = 8  # of the surface grid (an eighth of a tie cell each: one tie cell)
-
-
-def _tukey_loss(r: np.ndarray, scale: float, c: float = 4.685) -> np.ndarray:
-    """Tukey's biweight loss, bounded at ``c^2/6``: blunders cost a constant."""
-    a = np.clip(np.abs(r) / (c * scale), 0.0, 1.0)
-    return (c**2 / 6.0) * (1.0 - (1.0 - a**2) ** 3)
 
 
 @dataclass(frozen=True)
@@ -121,7 +115,7 @@ def fit_to_surface(
     if n0 < 10:
         return SurfaceFit(p0, float("nan"), float("nan"), n0, 0, False)
     scale = max(nmad(r0[use]), 1e-6 * max(1.0, float(np.abs(r0[use]).max())))
-    worst = 4.685**2 / 6
+    worst = float(tukey_loss(np.array([np.inf]), scale)[0])  # the bound: c^2 / 6
 
     def loss(params: np.ndarray) -> float:
         r, ok = residuals(params)
@@ -129,7 +123,7 @@ def fit_to_surface(
         if good.sum() < 0.9 * n0:
             return np.inf
         d = r[good] - np.median(r[good])
-        return float(_tukey_loss(d, scale).sum() + (n0 - good.sum()) * worst)
+        return float(tukey_loss(d, scale).sum() + (n0 - good.sum()) * worst)
 
     p, best = p0.copy(), loss(p0)
     it = 0

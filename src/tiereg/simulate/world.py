@@ -91,12 +91,6 @@ class World:
         return ndimage.map_coordinates(raster.astype(np.float64), np.vstack([r, c]), order=order,
                                        mode="nearest")
 
-    def xy_grid(self) -> tuple[np.ndarray, np.ndarray]:
-        rows, cols = self.shape
-        x = self.x0 + (np.arange(cols) + 0.5) * self.cell
-        y = self.y0 - (np.arange(rows) + 0.5) * self.cell
-        return np.meshgrid(x, y)
-
 
 def _fractal(shape: tuple[int, int], cell: float, slope: float, rng: np.random.Generator,
              *, min_wavelength_m: float) -> np.ndarray:
