@@ -9,7 +9,7 @@ import pytest
 from scenes import make_scene
 
 from tiereg import InputError, PointSet, Transform
-from tiereg.demo import run_demo
+from tiereg.demo import NOISE_Z, run_demo
 from tiereg.files import grid_to_geotiff
 from tiereg.io import write_points
 from tiereg.pipeline import register
@@ -40,7 +40,8 @@ def test_demo_on_real_lidar_within_a_tenth_of_a_cell(tmp_path):
     outcome = run_demo(tmp_path)
     assert outcome.result.confident
     assert outcome.error_cells < 0.1
-    assert abs(outcome.error[2]) < 0.1  # feet
+    # the coarse stage's height at the block centre, within half the tie points' own noise
+    assert abs(outcome.error[2]) < NOISE_Z / 2  # feet
     saved = json.loads((tmp_path / "RESULT.json").read_text())
     assert np.allclose(saved["T_ref_mov"], outcome.result.T_ref_mov.matrix)
 

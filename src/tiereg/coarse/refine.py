@@ -61,6 +61,7 @@ def height_offset(xyz: np.ndarray, sampler: SurfaceSampler, shift_xy: np.ndarray
 
 
 EDGE_MARGIN_CELLS = 8  # of the surface grid (an eighth of a tie cell each: one tie cell)
+MIN_KEPT = 0.7  # a pose must keep this share of the starting points on the surface
 
 
 @dataclass(frozen=True)
@@ -86,44 +87,45 @@ def fit_to_surface(
 
     ``place(params)`` returns the points ``(N, 3)`` in surface coordinates without the height
     offset; the offset is profiled out as ``tz = median(Z(x, y) - z)`` and the loss is
-    ``sum rho((Z - z - tz) / s)`` with Tukey's bounded ``rho`` and a fixed scale ``s`` (NMAD at
-    the start), so canopy points and blunders cannot pull the answer. A compass (pattern) search
+    the mean of ``rho((Z - z - tz) / s)`` with Tukey's bounded ``rho`` and a fixed scale ``s``
+    (NMAD at the start), so canopy points and blunders cannot pull the answer. A compass (pattern) search
     minimises it: derivative-free, hence indifferent to the noisy gradients of a gridded surface.
     It starts with ``steps`` per parameter, halves them when no move helps, and stops when they
-    are below ``tol_fraction`` of the start. The same points enter every evaluation.
+    are below ``tol_fraction`` of the start. Points count at a pose when they lie at least
+    :data:`EDGE_MARGIN_CELLS` inside the surface there; a pose that loses more than
+    ``1 - MIN_KEPT`` of the starting points is refused.
     """
     p0 = np.asarray(initial, dtype=np.float64)
     steps = np.asarray(steps, dtype=np.float64).copy()
     stop = steps * tol_fraction
 
+    # only points well inside the surface count, judged at each evaluated pose: a fixed set
+    # would penalise moves that push points out but not moves that pull others in, which biases
+    # scale and shift (a shrinking block keeps all its points); the loss is a mean over the
+    # points that count, so neither direction gains by changing how many there are
+    inner = ndimage.binary_erosion(sampler.valid, iterations=EDGE_MARGIN_CELLS)
+    inner_f = inner.astype(np.float64) if inner.any() else sampler.valid.astype(np.float64)
+
     def residuals(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = place(params)
         z, ok = sampler.sample(pts[:, 0], pts[:, 1])
-        return z - pts[:, 2], ok
+        rows, cols = sampler.grid.spec.rowcol(pts[:, 0], pts[:, 1])
+        deep = ndimage.map_coordinates(inner_f, np.vstack([rows, cols]), order=0,
+                                       mode="constant", cval=0.0) > 0.5
+        return z - pts[:, 2], ok & deep
 
     r0, use = residuals(p0)
-    # only points well inside the surface count: near its edge a move that pushes points out
-    # would be penalised and one that pulls them in not, which biases scale and shift
-    inner = ndimage.binary_erosion(sampler.valid, iterations=EDGE_MARGIN_CELLS)
-    pts0 = place(p0)
-    rows, cols = sampler.grid.spec.rowcol(pts0[:, 0], pts0[:, 1])
-    deep = ndimage.map_coordinates(inner.astype(np.float64), np.vstack([rows, cols]), order=0,
-                                   mode="constant", cval=0.0) > 0.5
-    if (use & deep).sum() >= 10:
-        use = use & deep
     n0 = int(use.sum())
     if n0 < 10:
         return SurfaceFit(p0, float("nan"), float("nan"), n0, 0, False)
     scale = max(nmad(r0[use]), 1e-6 * max(1.0, float(np.abs(r0[use]).max())))
-    worst = float(tukey_loss(np.array([np.inf]), scale)[0])  # the bound: c^2 / 6
 
     def loss(params: np.ndarray) -> float:
-        r, ok = residuals(params)
-        good = use & ok
-        if good.sum() < 0.9 * n0:
+        r, good = residuals(params)
+        if good.sum() < max(10, MIN_KEPT * n0):
             return np.inf
         d = r[good] - np.median(r[good])
-        return float(tukey_loss(d, scale).sum() + (n0 - good.sum()) * worst)
+        return float(tukey_loss(d, scale).mean())
 
     p, best = p0.copy(), loss(p0)
     it = 0
@@ -140,8 +142,7 @@ def fit_to_surface(
                     break
         if not moved:
             steps = steps / 2
-    r, ok = residuals(p)
-    good = use & ok
+    r, good = residuals(p)
     tz = float(np.median(r[good]))
     return SurfaceFit(p, tz, nmad(r[good] - tz), int(good.sum()), it, not np.any(steps >= stop))
 

@@ -69,6 +69,28 @@ def _place(xyz: np.ndarray):
     return place
 
 
+SCALE_STARTS = (0.0, -0.05, 0.05, -0.10, 0.10, -0.15, 0.15)  # log-scale offsets of the starts
+
+
+def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis, cell: float):
+    """The continuous fit of a search hypothesis, from several scales around it.
+
+    Grid scores locate the scale only to within several per cent on smooth or small surfaces,
+    and the fit from a single start can settle in a neighbouring minimum there; each start is
+    fitted and the one whose residuals are smallest is polished by a second fit.
+    """
+    place = _place(moving)
+    steps = np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
+                      math.radians(0.2), math.radians(0.2)])
+    fits = [fit_to_surface(place, sampler,
+                           np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]),
+                           steps, tol_fraction=1 / 16)
+            for d in SCALE_STARTS]
+    good = [f for f in fits if f.converged and np.isfinite(f.sigma0)] or fits
+    start = min(good, key=lambda f: f.sigma0)
+    return fit_to_surface(place, sampler, start.params, steps)
+
+
 def frequency_search(
     moving: np.ndarray,
     ref: Reference,
@@ -166,18 +188,16 @@ def register_similarity(
     best = found.best
     sampler = SurfaceSampler.from_grid(reference.base)
     cell = tie_cell * best.sigma
-    fit = fit_to_surface(_place(moving_xyz), sampler,
-                         np.array([best.kappa, math.log(best.sigma), best.tx, best.ty, 0.0, 0.0]),
-                         np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
-                                   math.radians(0.2), math.radians(0.2)]))
+    fit = refine_pose(moving_xyz, sampler, best, cell)
     kappa, log_sigma, tx, ty, omega, phi = fit.params
     moved = math.hypot(tx - best.tx, ty - best.ty) / cell
     turned = abs(math.degrees(kappa - best.kappa))
     rescaled = abs(log_sigma - math.log(best.sigma))
     reasons: list[str] = []
-    # the fit descends from the search's pose; grid scores can drift a few per cent in scale
-    # through lattice aliasing, which the point-based fit corrects: only runaways are refused
-    if fit.converged and moved <= 5.0 and turned <= 10.0 and rescaled <= math.log(1.15):
+    # the fit descends from the search's pose (and scales around it); grid scores can miss the scale
+    # by several per cent through lattice aliasing, which the point-based fit corrects: only
+    # runaways are refused
+    if fit.converged and moved <= 5.0 and turned <= 10.0 and rescaled <= max(SCALE_STARTS) + 0.1:
         T = Transform.from_parameters(scale=math.exp(log_sigma), kappa=kappa, omega=omega,
                                       phi=phi, translation=(tx, ty, fit.tz))
     else:
