@@ -220,7 +220,7 @@ def run_scene(job) -> tuple[list[Outcome], dict]:
         case_spec = replace(spec, hidden=case.hidden, overlap=case.overlap)
         if case.negative:  # tie points from a synthetic world of the same character
             case_spec = replace(case_spec, kind=lookalike, tie_world_seed=spec.seed + 1000)
-        scene = make_scene(case_spec, world=world)
+        scene = make_scene(case_spec, world=world, lidar=base_scene.lidar)
         for method in methods:
             T, conf, sec, note = run_tiereg(method, scene, ref)
             outcomes.append(_outcome(f"tiereg {method}", case, scene, T, conf, sec, note,

@@ -7,7 +7,7 @@ Vertical distances of the points to the surface (least z-difference, Rosenholm &
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
@@ -23,24 +23,42 @@ class SurfaceSampler:
     grid: Grid
     values: np.ndarray
     valid: np.ndarray
+    _inner: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def from_grid(cls, grid: Grid, *, stat: str = "mean") -> SurfaceSampler:
         filled, support = fill_normalized(grid[stat], grid.mask, sigma_cells=0.7)
         valid = ndimage.binary_erosion(support, iterations=1)
-        return cls(grid, filled, valid)
+        return cls(grid, filled, valid, {})
 
-    def sample(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Heights ``Z`` at the positions and whether each lies on valid surface."""
-        spec = self.grid.spec
-        rows, cols = spec.rowcol(x, y)
-        coords = np.vstack([rows, cols])
-        z = ndimage.map_coordinates(self.values, coords, order=1, mode="nearest")
-        ok = ndimage.map_coordinates(self.valid.astype(np.float64), coords, order=0,
-                                     mode="constant", cval=0.0) > 0.5
-        inside = (rows >= 0) & (rows <= spec.shape[0] - 1) & (cols >= 0) & (
-            cols <= spec.shape[1] - 1)
-        return z, ok & inside
+    def inner(self, margin_cells: int) -> np.ndarray:
+        """The valid cells at least ``margin_cells`` inside the surface (all valid cells when the
+        surface is too small to keep any)."""
+        if margin_cells not in self._inner:
+            inner = ndimage.binary_erosion(self.valid, iterations=margin_cells)
+            self._inner[margin_cells] = inner if inner.any() else self.valid
+        return self._inner[margin_cells]
+
+    def sample(self, x: np.ndarray, y: np.ndarray, *,
+               within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Heights ``Z`` at the positions (bilinear, edges clamped) and whether each lies on valid
+        surface (the nearest cell is valid, or is set in ``within``, a mask of the grid's shape).
+        """
+        rows, cols = self.grid.spec.rowcol(x, y)
+        h, w = self.values.shape
+        inside = (rows >= 0) & (rows <= h - 1) & (cols >= 0) & (cols <= w - 1)
+        r0 = np.clip(np.floor(rows), 0, max(h - 2, 0)).astype(np.intp)
+        c0 = np.clip(np.floor(cols), 0, max(w - 2, 0)).astype(np.intp)
+        fr = np.clip(rows - r0, 0.0, 1.0) if h > 1 else np.zeros_like(rows)
+        fc = np.clip(cols - c0, 0.0, 1.0) if w > 1 else np.zeros_like(cols)
+        r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+        v = self.values
+        z = ((v[r0, c0] * (1 - fc) + v[r0, c1] * fc) * (1 - fr)
+             + (v[r1, c0] * (1 - fc) + v[r1, c1] * fc) * fr)
+        rn = np.clip(np.rint(rows), 0, h - 1).astype(np.intp)
+        cn = np.clip(np.rint(cols), 0, w - 1).astype(np.intp)
+        mask = self.valid if within is None else within
+        return z, inside & mask[rn, cn]
 
 
 @dataclass(frozen=True)
@@ -103,16 +121,12 @@ def fit_to_surface(
     # would penalise moves that push points out but not moves that pull others in, which biases
     # scale and shift (a shrinking block keeps all its points); the loss is a mean over the
     # points that count, so neither direction gains by changing how many there are
-    inner = ndimage.binary_erosion(sampler.valid, iterations=EDGE_MARGIN_CELLS)
-    inner_f = inner.astype(np.float64) if inner.any() else sampler.valid.astype(np.float64)
+    inner = sampler.inner(EDGE_MARGIN_CELLS)
 
     def residuals(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = place(params)
-        z, ok = sampler.sample(pts[:, 0], pts[:, 1])
-        rows, cols = sampler.grid.spec.rowcol(pts[:, 0], pts[:, 1])
-        deep = ndimage.map_coordinates(inner_f, np.vstack([rows, cols]), order=0,
-                                       mode="constant", cval=0.0) > 0.5
-        return z - pts[:, 2], ok & deep
+        z, deep = sampler.sample(pts[:, 0], pts[:, 1], within=inner)
+        return z - pts[:, 2], deep
 
     r0, use = residuals(p0)
     n0 = int(use.sum())

@@ -70,6 +70,7 @@ def _place(xyz: np.ndarray):
 
 
 SCALE_STARTS = (0.0, -0.05, 0.05, -0.10, 0.10, -0.15, 0.15)  # log-scale offsets of the starts
+START_POINTS = 1000  # about this many tie points take part in the starts
 
 
 def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis, cell: float):
@@ -79,15 +80,16 @@ def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis, cell
     and the fit from a single start can settle in a neighbouring minimum there; each start is
     fitted and the one whose residuals are smallest is polished by a second fit.
     """
-    place = _place(moving)
     steps = np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
                       math.radians(0.2), math.radians(0.2)])
-    fits = [fit_to_surface(place, sampler,
+    thin = _place(moving[:: max(1, len(moving) // START_POINTS)])  # the starts see a sample
+    fits = [fit_to_surface(thin, sampler,
                            np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]),
                            steps, tol_fraction=1 / 16)
             for d in SCALE_STARTS]
     good = [f for f in fits if f.converged and np.isfinite(f.sigma0)] or fits
     start = min(good, key=lambda f: f.sigma0)
+    place = _place(moving)
     return fit_to_surface(place, sampler, start.params, steps)
 
 

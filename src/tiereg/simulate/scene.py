@@ -138,16 +138,21 @@ def place_block(overlap: float, side: float, heading_deg: float, half_lidar: flo
     return direction * (lo + hi) / 2
 
 
-def make_scene(spec: SceneSpec = SceneSpec(), *, world: World | None = None) -> Scene:
-    """Simulate a scene; pass ``world`` to reuse one already made from the same kind and seed."""
-    rng = np.random.default_rng([spec.seed, 1])
+def make_scene(spec: SceneSpec = SceneSpec(), *, world: World | None = None,
+               lidar: LidarPoints | None = None) -> Scene:
+    """Simulate a scene; pass ``world`` to reuse one already made from the same kind and seed,
+    and ``lidar`` to reuse the lidar of a scene with the same world, survey and seed (the lidar
+    does not depend on the block or the hidden transform)."""
+    rng = np.random.default_rng([spec.seed, 2])
     if world is None:
         world = make_world(spec.kind, size_m=spec.world_size_m, cell=spec.world_cell_m,
                            seed=spec.seed)
     half = spec.lidar_size_m / 2
-    lidar = sample_lidar(world, (-half, -half, half, half), spec.survey, rng=rng)
     georef = np.asarray(spec.georef, dtype=np.float64)
-    lidar = replace(lidar, xyz=lidar.xyz + georef)
+    if lidar is None:
+        lidar = sample_lidar(world, (-half, -half, half, half), spec.survey,
+                             rng=np.random.default_rng([spec.seed, 1]))
+        lidar = replace(lidar, xyz=lidar.xyz + georef)
 
     heading = float(rng.uniform(0, 360)) if spec.block_heading_deg is None \
         else spec.block_heading_deg
