@@ -93,7 +93,10 @@ def test_result_json_follows_the_contract():
                                         kappa=np.radians(p["kappa_deg"]),
                                         translation=p["translation"])
     assert np.allclose(rebuilt.matrix, T, rtol=0, atol=1e-9)
-    assert set(data["precision"]) == {"scale", "omega_deg", "phi_deg", "kappa_deg", "translation"}
+    precision = data["precision"]  # filled by the fine stage, one sigma per parameter
+    assert {"scale", "omega_deg", "phi_deg", "kappa_deg", "translation"} <= set(precision)
+    assert 0.0 < precision["translation"][2] < 0.1  # metres: 0.3 m height noise, 100 k lidar
+    assert data["stages"][1]["name"] == "fine" and data["stages"][1]["method"] == "lsm"
     assert data["stages"][0]["name"] == "coarse" and data["stages"][0]["method"] == "auto"
     assert {"n_moving", "n_used", "rmse_z", "median_dz", "nmad_dz"} <= set(data["quality"])
     assert 0.0 <= data["confidence"] <= 1.0
@@ -105,7 +108,7 @@ def test_result_json_follows_the_contract():
 
 def test_coarse_none_keeps_the_input_position():
     scene = make_scene(seed=7, lidar_points=100_000)  # already aligned
-    result = register(scene.tie_mov, scene.lidar, coarse="none")
+    result = register(scene.tie_mov, scene.lidar, coarse="none", fine="none")
     assert result.T_ref_mov.isclose(Transform.identity())
     assert result.quality.n_used == len(scene.tie_mov)
 
@@ -127,4 +130,4 @@ def test_unknown_methods_are_rejected():
     with pytest.raises(InputError, match="coarse method"):
         register(np.zeros((50, 3)), np.zeros((50, 3)), coarse="magic")
     with pytest.raises(InputError, match="fine method"):
-        register(np.zeros((50, 3)), np.zeros((50, 3)), fine="lsm")
+        register(np.zeros((50, 3)), np.zeros((50, 3)), fine="magic")

@@ -5,8 +5,9 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from tiereg.coarse.refine import fit_to_surface
 from tiereg.grid import Grid, GridSpec
-from tiereg.coarse.refine import SurfaceSampler, fit_to_surface
+from tiereg.surface import SurfaceSampler
 
 
 def _grid(rng, shape=(50, 60), cell=2.0, holes=0.1):

@@ -17,10 +17,11 @@ import numpy as np
 from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
-from .coarse.refine import SurfaceSampler
 from .coarse.similarity import register_similarity
 from .crs import crs_label, crs_units
 from .errors import InputError
+from .fine import METHODS as FINE_METHODS
+from .fine import FineResult, register_fine
 from .grid import cell_size_from_density
 from .io import PointSource, open_points
 from .io.base import ArraySource
@@ -28,9 +29,9 @@ from .points import PointSet, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats
 from .reference import Reference, base_cell_for, point_spacing, prepare_reference
+from .surface import SurfaceSampler
 from .transform import Transform
 
-FINE_METHODS = ("auto", "none")
 MIN_MOVING_POINTS = 30
 
 PointsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | PointSet | np.ndarray
@@ -66,30 +67,39 @@ class RegistrationResult:
     confident: bool
     confidence: float
     coarse: CoarseResult | None
+    fine: FineResult | None
     quality_before: HeightStats
     quality: HeightStats
     inputs: Inputs
     cell_size: float
     seconds: float
     reasons: tuple[str, ...] = ()
+    fine_note: str = ""
+    warnings: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         stages: list[dict[str, Any]] = []
         if self.coarse is not None:
             stages.append(self.coarse.to_dict())
-        stages.append({"name": "fine", "method": "none", "seconds": 0.0,
-                       "note": "no fine stage in this version; the coarse stage refines to "
-                               "sub-cell level"})
-        p = self.T_ref_mov.parameters().to_dict()
+        if self.fine is not None:
+            stages.append(self.fine.to_dict())
+        else:
+            stages.append({"name": "fine", "method": "none", "seconds": 0.0,
+                           "note": self.fine_note})
+        params = self.T_ref_mov.parameters()
+        p = params.to_dict()
+        precision = self.fine.precision(params.scale) if self.fine is not None else {
+            "scale": None, "omega_deg": None, "phi_deg": None, "kappa_deg": None,
+            "translation": None}
         return {
             "tiereg_version": __version__,
             "T_ref_mov": self.T_ref_mov.matrix.tolist(),
             "parameters": p,
-            "precision": {"scale": None, "omega_deg": None, "phi_deg": None, "kappa_deg": None,
-                          "translation": None},
+            "precision": precision,
             "confident": self.confident,
             "confidence": round(self.confidence, 4),
             "reasons": list(self.reasons),
+            "warnings": list(self.warnings),
             "cell_size": self.cell_size,
             "seconds": round(self.seconds, 3),
             "stages": stages,
@@ -167,7 +177,9 @@ def register(
     coarse
         ``"auto"`` or ``"pomf"`` (translation search), or ``"none"`` (keep the input position).
     fine
-        ``"auto"`` or ``"none"``; no fine stage exists in this version.
+        ``"auto"`` or ``"lsm"`` (least-squares matching of the points to the lidar surface,
+        7 parameters, with precision), or ``"none"``. It runs when the coarse answer is
+        confident (or ``coarse="none"``).
     cell_size
         Grid cell in reference units; by default derived from the moving points' density.
 
@@ -184,7 +196,7 @@ def register(
     if fine not in FINE_METHODS:
         raise InputError(
             f"fine method {fine!r} is not available in tiereg {__version__}; "
-            f"choose one of {FINE_METHODS}"
+            f"choose one of {', '.join(FINE_METHODS)}"
         )
     mov_src = _as_source(moving, moving_format, "moving")
     mov = mov_src.read()
@@ -235,6 +247,18 @@ def register(
         confident, confidence = coarse_result.confident, coarse_result.confidence
         reasons.extend(coarse_result.reasons)
 
+    fine_result: FineResult | None = None
+    warnings: list[str] = []
+    fine_note = "not asked for (--fine none)"
+    if fine != "none" and confident:
+        fine_result = register_fine(T_local.apply(mov_local), ref, cell_size=cell_size)
+        T_local = fine_result.T_increment @ T_local
+        if fine_result.held:
+            warnings.append(f"the data do not determine {', '.join(fine_result.held)} (flat or "
+                            "featureless ground): held at the coarse answer")
+    elif fine != "none":
+        fine_note = "skipped: the coarse answer is not confident"
+
     after = _height_stats(T_local.apply(mov_local), sampler)
     T_ref_mov = _to_world(T_local, o_ref, o_mov)
     inputs = Inputs(
@@ -251,10 +275,13 @@ def register(
         confident=bool(confident),
         confidence=float(confidence),
         coarse=coarse_result,
+        fine=fine_result,
         quality_before=before,
         quality=after,
         inputs=inputs,
         cell_size=float(cell_size),
         seconds=time.perf_counter() - t0,
         reasons=tuple(reasons),
+        fine_note=fine_note,
+        warnings=tuple(warnings),
     )

@@ -13,6 +13,7 @@ when the file records returns.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +57,19 @@ class Reference:
         if k not in self._cache:
             self._cache[k] = aggregate(self.base, k)
         return self._cache[k]
+
+
+    def local_chunks(self) -> Iterator[np.ndarray]:
+        """The reference points again, chunk by chunk, in local coordinates (first returns when
+        the base grid was made from them)."""
+        for chunk in _chunks(self.source, self.first_returns_only):
+            yield chunk - self.origin
+
+
+def _chunks(source: PointSource, first_only: bool) -> Iterator[np.ndarray]:
+    if first_only:
+        return source.chunks(keep=lambda r: np.asarray(r.return_number) <= 1)  # type: ignore
+    return source.chunks()
 
 
 def aggregate(grid: Grid, k: int) -> Grid:
@@ -137,10 +151,8 @@ def _grid(source: PointSource, spec: GridSpec, origin: np.ndarray, first_only: b
           progress: ProgressFactory) -> Grid:
     acc = GridAccumulator(spec, stats=("mean",))
     bar = progress(f"gridding {source.info.path.rsplit('/', 1)[-1]}", source.info.count)
-    chunks = (source.chunks(keep=lambda r: np.asarray(r.return_number) <= 1)  # type: ignore
-              if first_only else source.chunks())
     try:
-        for chunk in chunks:
+        for chunk in _chunks(source, first_only):
             acc.add(chunk - origin)
             bar.update(len(chunk))
     finally:

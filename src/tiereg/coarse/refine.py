@@ -7,58 +7,12 @@ Vertical distances of the points to the surface (least z-difference, Rosenholm &
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
-from ..grid import Grid, fill_normalized
 from ..robust import nmad, tukey_loss
-
-
-@dataclass(frozen=True)
-class SurfaceSampler:
-    """Bilinear heights of a grid surface at arbitrary positions, with a validity mask."""
-
-    grid: Grid
-    values: np.ndarray
-    valid: np.ndarray
-    _inner: dict = field(default_factory=dict, repr=False, compare=False)
-
-    @classmethod
-    def from_grid(cls, grid: Grid, *, stat: str = "mean") -> SurfaceSampler:
-        filled, support = fill_normalized(grid[stat], grid.mask, sigma_cells=0.7)
-        valid = ndimage.binary_erosion(support, iterations=1)
-        return cls(grid, filled, valid, {})
-
-    def inner(self, margin_cells: int) -> np.ndarray:
-        """The valid cells at least ``margin_cells`` inside the surface (all valid cells when the
-        surface is too small to keep any)."""
-        if margin_cells not in self._inner:
-            inner = ndimage.binary_erosion(self.valid, iterations=margin_cells)
-            self._inner[margin_cells] = inner if inner.any() else self.valid
-        return self._inner[margin_cells]
-
-    def sample(self, x: np.ndarray, y: np.ndarray, *,
-               within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Heights ``Z`` at the positions (bilinear, edges clamped) and whether each lies on valid
-        surface (the nearest cell is valid, or is set in ``within``, a mask of the grid's shape).
-        """
-        rows, cols = self.grid.spec.rowcol(x, y)
-        h, w = self.values.shape
-        inside = (rows >= 0) & (rows <= h - 1) & (cols >= 0) & (cols <= w - 1)
-        r0 = np.clip(np.floor(rows), 0, max(h - 2, 0)).astype(np.intp)
-        c0 = np.clip(np.floor(cols), 0, max(w - 2, 0)).astype(np.intp)
-        fr = np.clip(rows - r0, 0.0, 1.0) if h > 1 else np.zeros_like(rows)
-        fc = np.clip(cols - c0, 0.0, 1.0) if w > 1 else np.zeros_like(cols)
-        r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
-        v = self.values
-        z = ((v[r0, c0] * (1 - fc) + v[r0, c1] * fc) * (1 - fr)
-             + (v[r1, c0] * (1 - fc) + v[r1, c1] * fc) * fr)
-        rn = np.clip(np.rint(rows), 0, h - 1).astype(np.intp)
-        cn = np.clip(np.rint(cols), 0, w - 1).astype(np.intp)
-        mask = self.valid if within is None else within
-        return z, inside & mask[rn, cn]
+from ..surface import SurfaceSampler
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,11 @@ import numpy as np
 from ..grid import GridSpec, rasterize
 from ..reference import Reference
 from ..robust import nmad
+from ..surface import SurfaceSampler
 from ..transform import Transform, rotation_matrix
 from .fourier_mellin import rotation_scale_candidates
 from .preprocess import prepare
-from .refine import SurfaceSampler, fit_to_surface
+from .refine import fit_to_surface
 from .result import Candidate, CoarseResult
 from .search import (
     MIN_OVERLAP,

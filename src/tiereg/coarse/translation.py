@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from ..grid import Grid, GridSpec, rasterize
+from ..surface import SurfaceSampler
 from ..transform import Transform
 from .correlation import (
     cross_power_correlation,
@@ -31,7 +32,7 @@ from .correlation import (
     subpixel_peak,
 )
 from .preprocess import Prepared, prepare
-from .refine import SurfaceSampler, height_offset, refine_translation
+from .refine import height_offset, refine_translation
 from .result import Candidate, CoarseResult
 
 MIN_OVERLAP = 0.3  # of the moving grid's support

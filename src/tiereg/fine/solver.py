@@ -1,0 +1,179 @@
+"""Robust least-squares estimation of a 7-parameter similarity (Helmert) from surface distances.
+
+The one home of the fine stage's solver. Each observation is a signed distance ``r_i(q_i)`` of a
+moving point ``q_i`` (reference frame, local coordinates) to the reference surface, with its
+gradient ``g_i = dr_i/dq_i``: for the vertical distance to a DSM ``r = z - Z(x, y)``,
+``g = (-Z_x, -Z_y, 1)``; for the normal distance to a plane through ``c`` with unit normal ``n``,
+``r = n . (q - c)``, ``g = n``. The increment of the similarity about the block centroid ``c0``,
+
+    q' = c0 + (1 + ds) R(omega, phi, kappa) (q - c0) + t,
+
+is linear to first order in ``theta = (ds, omega, phi, kappa, tx, ty, tz)``:
+``dq = ds q_c + [omega, phi, kappa] x q_c + t`` with ``q_c = q - c0``, so the design matrix row is
+``A_i = g_i^T [q_c, e_x x q_c, e_y x q_c, e_z x q_c, I]`` and the normal equations
+``(A^T P A) theta = -A^T P r`` (least squares surface matching: Gruen & Akca 2005, ISPRS J. 59(3),
+eq. 8-11, with the distance gradients of Rosenholm & Torlegard 1988 for vertical distances).
+
+Weights are robust (iteratively reweighted): Huber for the first iterations, Tukey's biweight
+after, both on residuals scaled by their NMAD. The precision is ``sigma0^2 (A^T P A)^-1`` at
+convergence. A parameter the data cannot determine (horizontal shift on flat ground, heading on a
+featureless plane) is detected by its standard deviation, converted to a displacement at the edge
+of the block, and held at its starting value.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..robust import nmad
+from ..transform import Transform, rotation_matrix
+
+PARAMETERS = ("scale", "omega", "phi", "kappa", "tx", "ty", "tz")
+HUBER_K, TUKEY_C = 1.345, 4.685  # in units of the residual scale (95 % efficiency each)
+HUBER_ITERATIONS = 3
+
+# observe(q) -> (r, g, ok): distances (N,), their gradients (N, 3), and which points have one
+Observer = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class HelmertFit:
+    """The increment ``T`` (local reference frame) and what is known about it."""
+
+    T: Transform  # applies to points already placed by the coarse stage (local coordinates)
+    centre: np.ndarray  # the block centroid the increment turns and scales about
+    sigma: np.ndarray  # standard deviation of each parameter (nan where held)
+    held: tuple[str, ...]  # parameters the data could not determine
+    sigma0: float  # a posteriori standard deviation of unit weight (distance units)
+    n_used: int  # observations with weight above 0.5 at the end
+    n_observed: int
+    weights: np.ndarray  # final robust weight per point (0 for points without an observation)
+    residuals: np.ndarray  # final distances (nan for points without an observation)
+    iterations: int
+    converged: bool
+
+
+def design_matrix(q: np.ndarray, g: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Rows ``g^T [q_c, e_x x q_c, e_y x q_c, e_z x q_c, I]`` (see the module docstring)."""
+    qc = q - centre
+    gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
+    x, y, z = qc[:, 0], qc[:, 1], qc[:, 2]
+    return np.column_stack([
+        gx * x + gy * y + gz * z,  # scale
+        -gy * z + gz * y,  # omega: e_x x q = (0, -z, y)
+        gx * z - gz * x,  # phi: e_y x q = (z, 0, -x)
+        -gx * y + gy * x,  # kappa: e_z x q = (-y, x, 0)
+        gx, gy, gz,
+    ])
+
+
+def increment(theta: np.ndarray, centre: np.ndarray) -> Transform:
+    """The similarity ``q' = c0 + (1 + ds) R (q - c0) + t`` of a parameter vector."""
+    ds, omega, phi, kappa, tx, ty, tz = theta
+    M = np.eye(4)
+    M[:3, :3] = (1.0 + ds) * rotation_matrix(omega, phi, kappa)
+    M[:3, 3] = centre + np.array([tx, ty, tz]) - M[:3, :3] @ centre
+    return Transform(M)
+
+
+def robust_weights(u: np.ndarray, *, tukey: bool) -> np.ndarray:
+    """Weights of standardized residuals ``u``: Huber (``k = 1.345``) or Tukey (``c = 4.685``)."""
+    a = np.abs(u)
+    if tukey:
+        return np.where(a < TUKEY_C, (1 - (a / TUKEY_C) ** 2) ** 2, 0.0)
+    return np.where(a <= HUBER_K, 1.0, HUBER_K / np.maximum(a, 1e-300))
+
+
+def solve_helmert(
+    q0: np.ndarray,
+    observe: Observer,
+    *,
+    hold_displacement: float,
+    fixed: tuple[str, ...] = (),
+    max_iterations: int = 40,
+    tol_displacement: float | None = None,
+) -> HelmertFit:
+    """Estimate the similarity increment that brings the points ``q0`` onto the surface.
+
+    ``hold_displacement`` (distance units): a parameter whose standard deviation moves the block
+    (its edge, for scale and rotations) by more than this is not determined by the data and is held.
+    ``fixed`` parameters are held from the start. Iterations stop when the increment moves no point
+    of the block by more than ``tol_displacement`` (default ``hold_displacement / 1000``).
+    """
+    q0 = np.asarray(q0, dtype=np.float64)
+    centre = q0.mean(axis=0)
+    extent = q0 - centre
+    radius_xy = float(np.sqrt(np.mean(extent[:, 0] ** 2 + extent[:, 1] ** 2))) or 1.0
+    # displacement of the block per unit of each parameter: edge for scale and rotations
+    lever = np.array([radius_xy, radius_xy, radius_xy, radius_xy, 1.0, 1.0, 1.0])
+    tol = hold_displacement / 1000 if tol_displacement is None else tol_displacement
+    held = [PARAMETERS.index(p) for p in fixed]
+    T = Transform.identity()
+    scale_r = float("nan")
+    converged = False
+    it = 0
+    n = len(q0)
+    w_all, r_all = np.zeros(n), np.full(n, np.nan)
+    N, N_free = np.eye(7), list(range(7))
+    sigma0 = float("nan")
+    for it in range(1, max_iterations + 1):
+        q = T.apply(q0)
+        r, g, ok = observe(q)
+        ok = ok & np.isfinite(r)
+        if ok.sum() < 10:
+            break
+        A = design_matrix(q[ok], g[ok], centre)
+        rr = r[ok]
+        if it <= HUBER_ITERATIONS or not np.isfinite(scale_r):
+            scale_r = max(nmad(rr), 1e-12)
+        if it == HUBER_ITERATIONS + 1:  # holds made far from the answer were provisional
+            held = [PARAMETERS.index(p) for p in fixed]
+        w = robust_weights(rr / scale_r, tukey=it > HUBER_ITERATIONS)
+        if w.sum() < 10:  # everything beyond the biweight's reach: keep descending with Huber
+            w = robust_weights(rr / scale_r, tukey=False)
+        while True:
+            free = [i for i in range(7) if i not in held]
+            # unknowns as displacements of the block (u = theta * lever): conditioned normals
+            Af = A[:, free] / lever[free]
+            N, N_free = (Af * w[:, None]).T @ Af, free
+            b = -(Af * w[:, None]).T @ rr
+            step_scaled = np.linalg.lstsq(N, b, rcond=None)[0]
+            dof = max(float(w.sum()) - len(free), 1.0)
+            sigma0 = math.sqrt(float(np.sum(w * rr**2)) / dof)
+            # parameters the data cannot determine: hold the worst, one at a time, solve again
+            # (a vanishing ridge keeps singular normals invertible: their variances become
+            # huge); the spread of the residuals, not their offset, is the noise level here
+            ridge = 1e-12 * max(float(np.trace(N)) / len(free), 1e-300)
+            cov = min(sigma0, scale_r) ** 2 * np.linalg.inv(N + ridge * np.eye(len(free)))
+            sd_disp = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            if sd_disp.max() > hold_displacement and len(free) > 1:
+                held.append(free[int(np.argmax(sd_disp))])
+                continue
+            break
+        step = np.zeros(7)
+        step[free] = step_scaled / lever[free]
+        if not np.all(np.isfinite(step_scaled)):
+            break
+        dT = increment(step, centre)
+        T = dT @ T
+        w_all[:] = 0.0
+        w_all[np.flatnonzero(ok)] = w
+        r_all[:] = np.nan
+        r_all[np.flatnonzero(ok)] = rr
+        if it > HUBER_ITERATIONS and float(np.max(np.abs(step) * lever)) < tol:
+            converged = True
+            break
+    sigma = np.full(7, np.nan)
+    if N_free and np.isfinite(sigma0):
+        try:
+            cov = sigma0**2 * np.linalg.inv(N)
+            sigma[N_free] = np.sqrt(np.maximum(np.diag(cov), 0.0)) / lever[N_free]
+        except np.linalg.LinAlgError:
+            pass
+    return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
+                      int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
+                      converged)
