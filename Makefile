@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
-.PHONY: install demo test bench bench-quick clean
+.PHONY: install demo test bench bench-peers bench-quick clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -22,9 +22,27 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -q
 
-bench: install
+bench: install bench-peers
 	$(BIN)/python benchmarks/grid.py
 	$(BIN)/python benchmarks/coarse.py
+	$(BIN)/python benchmarks/fine.py
+
+bench-quick: install
+	$(BIN)/python benchmarks/coarse.py --quick
+	$(BIN)/python benchmarks/fine.py --quick
+
+# Peers run side by side in the benchmarks: CloudCompare (Debian package) and Open3D (needs the
+# Debian package libusb-1.0-0). Best effort: a peer that cannot be installed is left out of the
+# tables, and the benchmark says so.
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+bench-peers: install
+	@command -v CloudCompare >/dev/null || command -v cloudcompare >/dev/null || \
+	  { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends \
+	    cloudcompare libusb-1.0-0 >/dev/null; } || \
+	  echo "CloudCompare could not be installed: the benchmarks leave it out"
+	@$(BIN)/python -c "import open3d" 2>/dev/null || \
+	  $(BIN)/python -m pip install --quiet -e '.[bench-open3d]' || \
+	  echo "Open3D could not be installed: the benchmarks leave it out"
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache

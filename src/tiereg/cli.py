@@ -24,7 +24,8 @@ EXAMPLES = {
     "register": """examples:
   tiereg register tiepoints.txt lidar.laz -o RESULT.json
   tiereg register sparse/0 tiles/ -o RESULT.json --output-points tie_in_lidar_frame.laz
-  tiereg register points3D.txt 'tiles/*.laz' -o RESULT.json --cell-size 40 -q""",
+  tiereg register points3D.txt 'tiles/*.laz' -o RESULT.json --cell-size 40 -q
+  tiereg register ties.txt lidar.laz -o RESULT.json --coarse none --initial approx.txt""",
     "apply": """examples:
   tiereg apply RESULT.json tiepoints.txt tiepoints_registered.txt
   tiereg apply RESULT.json model.ply model_georef.ply
@@ -101,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fine", choices=FINE_METHODS, default="auto", help="fine method")
     p.add_argument("--cell-size", type=float, metavar="M",
                    help="grid cell in reference units (default: from the tie-point density)")
+    p.add_argument("--initial", metavar="TRANSFORM",
+                   help="a starting pose (RESULT.json or a 16-number matrix file); with "
+                   "--coarse none the fine stage starts from it")
     p.add_argument("--output-points", metavar="PATH",
                    help="also write the moving points in the reference frame (format by suffix)")
     p.add_argument("--moving-format", metavar="FMT", help="override format detection")
@@ -198,8 +202,10 @@ def _cmd_register(args: argparse.Namespace) -> int:
     check_writable(out)  # fail before any work if the result could not be written
     if args.output_points:
         check_writable(args.output_points)
+    initial = _load_transform(args.initial) if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
-                      cell_size=args.cell_size, moving_format=args.moving_format,
+                      cell_size=args.cell_size, initial=initial,
+                      moving_format=args.moving_format,
                       reference_format=args.reference_format,
                       progress=_progress_factory(args.quiet))
     if args.output_points:

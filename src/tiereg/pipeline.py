@@ -76,6 +76,7 @@ class RegistrationResult:
     reasons: tuple[str, ...] = ()
     fine_note: str = ""
     warnings: tuple[str, ...] = ()
+    T_initial: Transform | None = None  # the starting pose given by the caller, if any
 
     def to_dict(self) -> dict[str, Any]:
         stages: list[dict[str, Any]] = []
@@ -106,6 +107,7 @@ class RegistrationResult:
             "quality": self.quality.to_dict(),
             "quality_before": self.quality_before.to_dict(),
             "inputs": self.inputs.to_dict(),
+            "T_initial": None if self.T_initial is None else self.T_initial.matrix.tolist(),
             "exports": {
                 "pdal_filters_transformation_matrix": self.T_ref_mov.to_pdal(),
                 "cloudcompare_matrix": self.T_ref_mov.to_cloudcompare().splitlines(),
@@ -162,6 +164,7 @@ def register(
     coarse: str = "auto",
     fine: str = "auto",
     cell_size: float | None = None,
+    initial: Transform | np.ndarray | None = None,
     moving_format: str | None = None,
     reference_format: str | None = None,
     progress: ProgressFactory | None = None,
@@ -178,10 +181,15 @@ def register(
         ``"auto"`` or ``"pomf"`` (translation search), or ``"none"`` (keep the input position).
     fine
         ``"auto"`` or ``"lsm"`` (least-squares matching of the points to the lidar surface,
-        7 parameters, with precision), or ``"none"``. It runs when the coarse answer is
+        7 parameters, with precision), ``"icp-point"`` or ``"icp-plane"`` (classic ICP, for
+        comparison and dense moving sets), or ``"none"``. It runs when the coarse answer is
         confident (or ``coarse="none"``).
     cell_size
         Grid cell in reference units; by default derived from the moving points' density.
+    initial
+        A starting ``T_ref_mov`` (e.g. from GNSS/IMU or an earlier run). The moving points are
+        placed by it first; the answer includes it. With ``coarse="none"`` the fine stage starts
+        from it.
 
     Returns
     -------
@@ -201,8 +209,12 @@ def register(
     mov_src = _as_source(moving, moving_format, "moving")
     mov = mov_src.read()
     validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
-    o_mov = np.round(mov.xyz.mean(axis=0))
-    mov_local = mov.xyz - o_mov
+    if initial is not None and not isinstance(initial, Transform):
+        initial = Transform(np.asarray(initial, dtype=np.float64))
+    mov_xyz = mov.xyz if initial is None else initial.apply(mov.xyz)
+    T_start = Transform.identity() if initial is None else initial
+    o_mov = np.round(mov_xyz.mean(axis=0))
+    mov_local = mov_xyz - o_mov
     tie_cell = cell_size_from_density(mov_local)  # model units
     if cell_size is None:
         cell_size = tie_cell
@@ -243,7 +255,8 @@ def register(
             coarse_result = register_similarity(mov_local, ref, tie_cell=tie_cell,
                                                 method=coarse)
         T_local = coarse_result.T_ref_mov
-        coarse_result = replace(coarse_result, T_ref_mov=_to_world(T_local, o_ref, o_mov))
+        coarse_result = replace(coarse_result,
+                                T_ref_mov=_to_world(T_local, o_ref, o_mov) @ T_start)
         confident, confidence = coarse_result.confident, coarse_result.confidence
         reasons.extend(coarse_result.reasons)
 
@@ -251,7 +264,8 @@ def register(
     warnings: list[str] = []
     fine_note = "not asked for (--fine none)"
     if fine != "none" and confident:
-        fine_result = register_fine(T_local.apply(mov_local), ref, cell_size=cell_size)
+        fine_result = register_fine(T_local.apply(mov_local), ref, cell_size=cell_size,
+                                    method="lsm" if fine == "auto" else fine)
         T_local = fine_result.T_increment @ T_local
         if fine_result.held:
             warnings.append(f"the data do not determine {', '.join(fine_result.held)} (flat or "
@@ -260,7 +274,7 @@ def register(
         fine_note = "skipped: the coarse answer is not confident"
 
     after = _height_stats(T_local.apply(mov_local), sampler)
-    T_ref_mov = _to_world(T_local, o_ref, o_mov)
+    T_ref_mov = _to_world(T_local, o_ref, o_mov) @ T_start
     inputs = Inputs(
         moving=mov_src.info.path,
         reference=ref_src.info.path,
@@ -284,4 +298,5 @@ def register(
         reasons=tuple(reasons),
         fine_note=fine_note,
         warnings=tuple(warnings),
+        T_initial=initial,
     )

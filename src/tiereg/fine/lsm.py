@@ -32,6 +32,10 @@ from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 
 PATCH_POINTS = 12  # lidar neighbours per plane
 MAX_SURFACE_VARIATION = 0.01  # lambda_min / sum(lambda) of a planar patch (Pauly et al. 2002)
+# Gently sloped surfaces only (roofs, ground; cf. Gneeniss et al. 2015): at steeper ones (walls,
+# the step at a roof's edge) a tie point's horizontal error and the kink between the patch and
+# its neighbour bias the distance, and tie points gather at exactly such edges (image corners).
+MAX_SLOPE = 1.0  # rise over run: 45 degrees
 CENTRED = 0.35  # offset from the patch centroid, as a share of the farthest neighbour's distance
 MIN_PLANES = 50  # fewer planar patches than this: the vertical answer stands
 
@@ -89,13 +93,14 @@ class FineResult:
 
 
 def vertical_observer(sampler: SurfaceSampler) -> Observer:
-    """``r = z - Z(x, y)`` and ``g = (-Z_x, -Z_y, 1)`` against a gridded surface."""
+    """``r = z - Z(x, y)`` and ``g = (-Z_x, -Z_y, 1)`` against a gridded surface, where its slope
+    is at most :data:`MAX_SLOPE`."""
 
     def observe(q: np.ndarray):
         z, ok = sampler.sample(q[:, 0], q[:, 1])
         zx, zy = sampler.gradient(q[:, 0], q[:, 1])
         g = np.column_stack([-zx, -zy, np.ones(len(q))])
-        return q[:, 2] - z, g, ok
+        return q[:, 2] - z, g, ok & (np.hypot(zx, zy) <= MAX_SLOPE)
 
     return observe
 
@@ -129,7 +134,8 @@ def plane_observer(lidar: np.ndarray, radius: float) -> Observer:
     """``r = n . (q - c)``, ``g = n`` for the plane through the lidar points around each point.
 
     Neighbours are the :data:`PATCH_POINTS` nearest in plan within ``radius``; the patch counts
-    when its surface variation is below :data:`MAX_SURFACE_VARIATION`.
+    when its surface variation is below :data:`MAX_SURFACE_VARIATION` and its slope at most
+    :data:`MAX_SLOPE`.
     """
     tree = cKDTree(lidar[:, :2])
 
@@ -151,7 +157,8 @@ def plane_observer(lidar: np.ndarray, radius: float) -> Observer:
         # the point must sit inside its patch, not beside it (a roof seen from the ground next to
         # it is planar too): its offset from the centroid small against the patch's reach
         off = np.hypot(*(q[full, :2] - c[:, :2]).T)
-        planar = (variation < MAX_SURFACE_VARIATION) & (off < CENTRED * dist[full, -1])
+        gentle = normal[:, 2] >= 1.0 / math.sqrt(1.0 + MAX_SLOPE**2)
+        planar = (variation < MAX_SURFACE_VARIATION) & gentle & (off < CENTRED * dist[full, -1])
         rows = np.flatnonzero(full)
         r[rows] = np.einsum("mi,mi->m", normal, q[rows] - c)
         g[rows] = normal
@@ -166,14 +173,26 @@ def register_fine(
     reference: Reference,
     *,
     cell_size: float,
+    method: str = "lsm",
 ) -> FineResult:
     """Fine registration of tie points ``placed`` by the coarse stage (local reference frame).
 
     ``cell_size``: the registration's grid cell; parameters that move the block by more than a
-    quarter of it (one standard deviation) are not determined and are held.
+    quarter of it (one standard deviation) are not determined and are held. ``method``: ``lsm``
+    (vertical, then planes), ``icp-point`` or ``icp-plane`` (:mod:`tiereg.fine.icp`).
     """
     t0 = time.perf_counter()
     hold = cell_size / 4
+    if method in ("icp-point", "icp-plane"):
+        from .icp import plane_observer_icp, point_observer
+
+        lidar = lidar_near(reference, placed[:, :2], max(2.5 * reference.spacing, cell_size / 4))
+        if len(lidar) < PATCH_POINTS:
+            observe = _no_observations
+        else:
+            observe = point_observer(lidar) if method == "icp-point" else plane_observer_icp(lidar)
+        fit = solve_helmert(placed, observe, hold_displacement=hold)
+        return FineResult(fit.T, method, method, fit, 0, time.perf_counter() - t0)
     sampler = SurfaceSampler.from_grid(reference.base)
     fit = solve_helmert(placed, vertical_observer(sampler), hold_displacement=hold)
     model, n_planes = "vertical", 0
@@ -190,6 +209,10 @@ def register_fine(
                 fit = _compose(fit, planes)
                 model = "planes"
     return FineResult(fit.T, "lsm", model, fit, n_planes, time.perf_counter() - t0)
+
+
+def _no_observations(q: np.ndarray):
+    return np.full(len(q), np.nan), np.zeros((len(q), 3)), np.zeros(len(q), bool)
 
 
 def _compose(first: HelmertFit, second: HelmertFit) -> HelmertFit:
