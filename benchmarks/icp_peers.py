@@ -116,10 +116,13 @@ def run_open3d_icp(placed: np.ndarray, lidar: np.ndarray, *, plane: bool,
     criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
                                           max_iteration=ICP_ITERATIONS)
     fitness = rmse = float("nan")
-    for d in distances_m:
-        res = reg.registration_icp(src, tgt, d, T, estimator, criteria)
-        T = np.asarray(res.transformation)
-        fitness, rmse = float(res.fitness), float(res.inlier_rmse)
+    try:
+        for d in distances_m:
+            res = reg.registration_icp(src, tgt, d, T, estimator, criteria)
+            T = np.asarray(res.transformation)
+            fitness, rmse = float(res.fitness), float(res.inlier_rmse)
+    except RuntimeError as exc:  # e.g. no normals on an empty or degenerate target
+        return _failed(t0, f"Open3D: {str(exc).strip()[-120:]}")
     kind = "point-to-plane" if plane else "point-to-point with scaling"
     return IcpEstimate(T, time.perf_counter() - t0,
                        f"{kind}; fitness {fitness:.2f}, inlier RMSE {rmse:.3f}")
