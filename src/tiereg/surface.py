@@ -38,6 +38,16 @@ class SurfaceSampler:
             self._inner[margin_cells] = inner if inner.any() else self.valid
         return self._inner[margin_cells]
 
+    def _cell(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The bilinear cell of each position: corner indices and fractions (edges clamped)."""
+        h, w = self.values.shape
+        r0 = np.clip(np.floor(rows), 0, max(h - 2, 0)).astype(np.intp)
+        c0 = np.clip(np.floor(cols), 0, max(w - 2, 0)).astype(np.intp)
+        fr = np.clip(rows - r0, 0.0, 1.0) if h > 1 else np.zeros_like(rows)
+        fc = np.clip(cols - c0, 0.0, 1.0) if w > 1 else np.zeros_like(cols)
+        r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+        return r0, c0, r1, c1, fr, fc
+
     def sample(self, x: np.ndarray, y: np.ndarray, *,
                within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Heights ``Z`` at the positions (bilinear, edges clamped) and whether each lies on valid
@@ -46,11 +56,7 @@ class SurfaceSampler:
         rows, cols = self.grid.spec.rowcol(x, y)
         h, w = self.values.shape
         inside = (rows >= 0) & (rows <= h - 1) & (cols >= 0) & (cols <= w - 1)
-        r0 = np.clip(np.floor(rows), 0, max(h - 2, 0)).astype(np.intp)
-        c0 = np.clip(np.floor(cols), 0, max(w - 2, 0)).astype(np.intp)
-        fr = np.clip(rows - r0, 0.0, 1.0) if h > 1 else np.zeros_like(rows)
-        fc = np.clip(cols - c0, 0.0, 1.0) if w > 1 else np.zeros_like(cols)
-        r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+        r0, c0, r1, c1, fr, fc = self._cell(rows, cols)
         v = self.values
         z = ((v[r0, c0] * (1 - fc) + v[r0, c1] * fc) * (1 - fr)
              + (v[r1, c0] * (1 - fc) + v[r1, c1] * fc) * fr)
@@ -63,12 +69,7 @@ class SurfaceSampler:
         """``(dZ/dx, dZ/dy)`` of the bilinear surface at the positions (per cell, constant)."""
         spec = self.grid.spec
         rows, cols = spec.rowcol(x, y)
-        h, w = self.values.shape
-        r0 = np.clip(np.floor(rows), 0, max(h - 2, 0)).astype(np.intp)
-        c0 = np.clip(np.floor(cols), 0, max(w - 2, 0)).astype(np.intp)
-        fr = np.clip(rows - r0, 0.0, 1.0) if h > 1 else np.zeros_like(rows)
-        fc = np.clip(cols - c0, 0.0, 1.0) if w > 1 else np.zeros_like(cols)
-        r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+        r0, c0, r1, c1, fr, fc = self._cell(rows, cols)
         v = self.values
         dz_dcol = (v[r0, c1] - v[r0, c0]) * (1 - fr) + (v[r1, c1] - v[r1, c0]) * fr
         dz_drow = (v[r1, c0] - v[r0, c0]) * (1 - fc) + (v[r1, c1] - v[r0, c1]) * fc
