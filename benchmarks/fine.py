@@ -82,6 +82,14 @@ class Outcome:
     note: str = ""
 
 
+def perturbed(T_true: Transform, moving: np.ndarray) -> Transform:
+    """The truth disturbed by :data:`PERTURBATION` about the block's centroid (turning about the
+    far-away origin of projected coordinates would move the block by kilometres)."""
+    c = T_true.apply(moving).mean(axis=0)
+    return (Transform.from_translation(c) @ PERTURBATION @ Transform.from_translation(-c)
+            @ T_true)
+
+
 def errors_at(T_est: Transform, T_true: Transform, moving: np.ndarray) -> tuple[float, ...]:
     d = T_est.apply(moving) - T_true.apply(moving)
     return (float(np.sqrt(np.mean(np.sum(d**2, axis=1)))),
@@ -125,7 +133,7 @@ def run_case(kind: str, case: int, spec: SceneSpec, world, lidar, ref,
     if coarse.confident and rms < coarse.cell_size:
         T_start, start = coarse.T_ref_mov, "coarse"
     else:
-        T_start, start = PERTURBATION @ T_true, "perturbed truth"
+        T_start, start = perturbed(T_true, moving), "perturbed truth"
     out[0].start = start
     for method in ("lsm", "icp-point", "icp-plane"):
         fine = register(moving, ref, coarse="none", fine=method, initial=T_start)
@@ -135,7 +143,9 @@ def run_case(kind: str, case: int, spec: SceneSpec, world, lidar, ref,
                            f.seconds if f else float("nan"),
                            honest=precision_honest(fine, T_true, moving) if f else None,
                            held=",".join(f.held) if f else "",
-                           note=f"{f.model}, sigma0 {f.fit.sigma0:.3f}" if f else fine.fine_note))
+                           note=(f"{f.model}, sigma0 {f.fit.sigma0:.3f}"
+                                 + (f"; refused: {f.refused}" if f.refused else "")
+                                 if f else fine.fine_note)))
     # the peers: tie points placed by the start pose, first-return lidar around them, local frame
     origin = ref.origin
     placed = T_start.apply(moving) - origin

@@ -166,3 +166,48 @@ def test_icp_observers_recover_a_known_similarity(kind):
         # point-to-point slides along a smooth surface (its nearest points follow the point): it
         # finds the height, 0.7 m off at the start, but hardly the 2.5 m horizontal offset
         assert np.sqrt(np.mean(d[:, 2] ** 2)) < 0.1
+
+
+def test_a_fine_answer_that_moves_the_block_too_far_or_fits_worse_is_refused():
+    from tiereg.fine.lsm import _refusal
+
+    p = _points(np.random.default_rng(5), 800)
+    observe = _vertical
+    start_spread = 0.3  # metres: the spread of the distances at the coarse pose
+    near = TRUTH.inverse.apply(p)  # about 2.6 m off: the fine stage may move it there
+    fit = solve_helmert(near, observe, hold_displacement=5.0)
+    assert _refusal(fit, near, observe, start_spread=1.0, max_move=10.0) == ""
+    far = p + [0.0, 0.0, 40.0]  # 40 m above: more than the coarse stage's uncertainty
+    fit = solve_helmert(far, observe, hold_displacement=5.0)
+    assert "move the block" in _refusal(fit, far, observe, start_spread=1.0, max_move=10.0)
+    # an answer that leaves the points farther from the surface than they started
+    fit = solve_helmert(near, observe, hold_displacement=5.0)
+    worse = fit.__class__(**{**fit.__dict__, "T": Transform.from_parameters(
+        kappa=np.radians(3.0))})
+    assert "farther from the lidar surface" in _refusal(worse, p, observe, start_spread,
+                                                        max_move=1e6)
+
+
+def test_lsm_finds_the_canopy_surface_where_the_grid_mean_is_metres_off():
+    # tie points of a forest sit in gaps and on crowns; the 5 m grid's mean height is metres
+    # above the gaps, so vertical distances to it are biased. The surface model is not.
+    from tiereg import register
+    from tiereg.simulate import HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene
+
+    scene = make_scene(SceneSpec(
+        kind="forest", seed=41, world_size_m=1500.0, lidar_size_m=1200.0,
+        block=ImageBlock(side_m=1000.0), survey=LidarSurvey(density_per_m2=1.0),
+        hidden=HiddenTransform(heading_deg=30.0, scale=1.0), block_heading_deg=0.0))
+    truth = scene.T_ref_mov.apply(scene.moving)
+    c = truth.mean(axis=0)
+    off = (Transform.from_translation(c + [0.6, -0.5, 8.0])
+           @ Transform.from_parameters(kappa=np.radians(0.03)) @ Transform.from_translation(-c))
+    start = off @ scene.T_ref_mov  # as the coarse stage leaves it in a forest: 8 m too high
+
+    def rms(T):
+        return float(np.sqrt(np.mean(np.sum((T.apply(scene.moving) - truth) ** 2, axis=1))))
+
+    result = register(scene.moving, scene.lidar.xyz, coarse="none", initial=start,
+                      cell_size=20.0)
+    assert result.fine is not None and not result.fine.refused
+    assert rms(result.T_ref_mov) < 0.3  # metres (tie noise 0.15 m / 0.3 m, lidar 1 per m^2)

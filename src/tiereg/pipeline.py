@@ -266,8 +266,12 @@ def register(
     if fine != "none" and confident:
         fine_result = register_fine(T_local.apply(mov_local), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
-        T_local = fine_result.T_increment @ T_local
-        if fine_result.held:
+        if fine_result.refused:
+            warnings.append(f"the fine answer was refused: {fine_result.refused}; the "
+                            "coarse answer stands (try --fine icp-plane, or check the inputs)")
+        else:
+            T_local = fine_result.T_increment @ T_local
+        if fine_result.held and not fine_result.refused:
             warnings.append(f"the data do not determine {', '.join(fine_result.held)} (flat or "
                             "featureless ground): held at the coarse answer")
     elif fine != "none":

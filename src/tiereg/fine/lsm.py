@@ -3,16 +3,20 @@
 Two observation models feed the one solver (:func:`~tiereg.fine.solver.solve_helmert`):
 
 1. **vertical**: the height difference to the gridded lidar surface (bilinear heights and
-   gradients of the reference's base grid; Rosenholm & Torlegard 1988). Every tie point on the
-   lidar contributes; it converges from a coarse pose a cell or two away.
-2. **planes**: the normal distance to a plane fitted to the lidar points around each tie point
-   (point-to-plane; the LS3D model of Gruen & Akca 2005 with planar patches). Only points whose
-   neighbourhood is planar (roofs, open ground) contribute; the lidar is read once more, and only
-   the points near the tie points are kept.
+   gradients of the reference's base grid; Rosenholm & Torlegard 1988), where it is gently sloped.
+   It needs no lidar points, only the grid, and it pulls a block a cell or two off back in.
+2. **surface**: the normal distance to the lidar's local surface at the nearest first return
+   (LS3D, Gruen & Akca 2005), each patch weighted by how rough it is
+   (:func:`~tiereg.fine.icp.nearest_plane_observer`). The lidar is read once more, and only the
+   points near the tie points are kept.
 
-``lsm`` runs the vertical model, then the planes model from its answer when enough planar patches
-exist. Tie points sit on the visible surface, so both use first returns; robust weights keep
-canopy, edges and blunders from pulling the answer.
+``lsm`` runs the vertical model, keeps its answer only when it brings the tie points closer to the
+lidar's surface (on rough ground, forest or steep relief, a grid cell's mean height is not the
+surface a tie point sits on), then solves the surface model from there. A final guard refuses a
+fine answer that leaves the tie points farther from the surface than the coarse pose did, or that
+moves the block by more than the coarse stage's uncertainty: the coarse answer then stands, and
+the result says so. Tie points sit on the visible surface, so both models use first returns;
+robust weights keep canopy, edges and blunders from pulling the answer.
 """
 
 from __future__ import annotations
@@ -26,18 +30,19 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..reference import Reference
+from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform
+from .icp import nearest_plane_observer, plane_observer_icp, point_observer
 from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 
-PATCH_POINTS = 12  # lidar neighbours per plane
-MAX_SURFACE_VARIATION = 0.01  # lambda_min / sum(lambda) of a planar patch (Pauly et al. 2002)
-# Gently sloped surfaces only (roofs, ground; cf. Gneeniss et al. 2015): at steeper ones (walls,
-# the step at a roof's edge) a tie point's horizontal error and the kink between the patch and
-# its neighbour bias the distance, and tie points gather at exactly such edges (image corners).
+# The vertical model on gently sloped surfaces only (roofs, ground; cf. Gneeniss et al. 2015): at
+# steeper ones (walls, the step at a roof's edge) a tie point's horizontal error biases the height
+# difference, and tie points gather at exactly such edges (image corners).
 MAX_SLOPE = 1.0  # rise over run: 45 degrees
-CENTRED = 0.35  # offset from the patch centroid, as a share of the farthest neighbour's distance
-MIN_PLANES = 50  # fewer planar patches than this: the vertical answer stands
+SURFACE_POINTS = 8  # lidar neighbours of a surface patch (lsm)
+MIN_LIDAR = 50  # fewer lidar points near the tie points than this: no surface model
+MAX_MOVE_CELLS = 2.0  # a fine answer moving the block farther than this (RMS) is refused
 
 
 @dataclass(frozen=True)
@@ -48,8 +53,9 @@ class FineResult:
     method: str
     model: str  # the observation model of the final solution
     fit: HelmertFit
-    n_planes: int  # tie points with a planar lidar patch
+    n_lidar: int  # lidar points read near the tie points
     seconds: float
+    refused: str = ""  # why the fine answer was refused (the coarse pose stands); "" if accepted
 
     @property
     def held(self) -> tuple[str, ...]:
@@ -61,7 +67,7 @@ class FineResult:
         Angles and the scale are those of the whole transform; the translation's is that of the
         block centroid (the transform's own translation, far from the data, is not meaningful).
         """
-        s = self.fit.sigma
+        s = self.fit.sigma if not self.refused else np.full(7, np.nan)
 
         def val(i: int, factor: float = 1.0) -> float | None:
             return None if not np.isfinite(s[i]) else float(s[i] * factor)
@@ -86,8 +92,9 @@ class FineResult:
             "sigma0": self.fit.sigma0,
             "n_observed": self.fit.n_observed,
             "n_used": self.fit.n_used,
-            "n_planes": self.n_planes,
+            "n_lidar": self.n_lidar,
             "held": list(self.fit.held),
+            "refused": self.refused or None,
             "parameters": list(PARAMETERS),
         }
 
@@ -130,44 +137,6 @@ def lidar_near(reference: Reference, xy: np.ndarray, radius: float) -> np.ndarra
     return np.concatenate(kept) if kept else np.empty((0, 3))
 
 
-def plane_observer(lidar: np.ndarray, radius: float) -> Observer:
-    """``r = n . (q - c)``, ``g = n`` for the plane through the lidar points around each point.
-
-    Neighbours are the :data:`PATCH_POINTS` nearest in plan within ``radius``; the patch counts
-    when its surface variation is below :data:`MAX_SURFACE_VARIATION` and its slope at most
-    :data:`MAX_SLOPE`.
-    """
-    tree = cKDTree(lidar[:, :2])
-
-    def observe(q: np.ndarray):
-        n_q = len(q)
-        r, g, ok = np.full(n_q, np.nan), np.zeros((n_q, 3)), np.zeros(n_q, bool)
-        dist, idx = tree.query(q[:, :2], k=PATCH_POINTS, distance_upper_bound=radius)
-        full = np.isfinite(dist).all(axis=1)
-        if not full.any():
-            return r, g, ok
-        nb = lidar[idx[full]]  # (m, k, 3)
-        c = nb.mean(axis=1)
-        d = nb - c[:, None, :]
-        cov = np.einsum("mki,mkj->mij", d, d) / PATCH_POINTS
-        evals, evecs = np.linalg.eigh(cov)
-        normal = evecs[:, :, 0]
-        normal *= np.where(normal[:, 2] < 0, -1.0, 1.0)[:, None]  # upward
-        variation = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-300)
-        # the point must sit inside its patch, not beside it (a roof seen from the ground next to
-        # it is planar too): its offset from the centroid small against the patch's reach
-        off = np.hypot(*(q[full, :2] - c[:, :2]).T)
-        gentle = normal[:, 2] >= 1.0 / math.sqrt(1.0 + MAX_SLOPE**2)
-        planar = (variation < MAX_SURFACE_VARIATION) & gentle & (off < CENTRED * dist[full, -1])
-        rows = np.flatnonzero(full)
-        r[rows] = np.einsum("mi,mi->m", normal, q[rows] - c)
-        g[rows] = normal
-        ok[rows] = planar
-        return r, g, ok
-
-    return observe
-
-
 def register_fine(
     placed: np.ndarray,
     reference: Reference,
@@ -179,42 +148,76 @@ def register_fine(
 
     ``cell_size``: the registration's grid cell; parameters that move the block by more than a
     quarter of it (one standard deviation) are not determined and are held. ``method``: ``lsm``
-    (vertical, then planes), ``icp-point`` or ``icp-plane`` (:mod:`tiereg.fine.icp`).
+    (vertical, then surface; see the module docstring), ``icp-point`` or ``icp-plane``
+    (:mod:`tiereg.fine.icp`).
     """
     t0 = time.perf_counter()
     hold = cell_size / 4
-    if method in ("icp-point", "icp-plane"):
-        from .icp import plane_observer_icp, point_observer
-
-        lidar = lidar_near(reference, placed[:, :2], max(2.5 * reference.spacing, cell_size / 4))
-        if len(lidar) < PATCH_POINTS:
-            observe = _no_observations
+    radius = max(2.5 * reference.spacing, cell_size / 4)
+    lidar = lidar_near(reference, placed[:, :2], radius)
+    if method == "icp-point":
+        observe = point_observer(lidar) if len(lidar) >= MIN_LIDAR else _no_observations
+    else:
+        observe = (nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True)
+                   if method == "lsm" else plane_observer_icp(lidar)
+                   ) if len(lidar) >= MIN_LIDAR else _no_observations
+    start_spread = _spread(observe, placed)
+    model, start = method, Transform.identity()
+    if method == "lsm":
+        sampler = SurfaceSampler.from_grid(reference.base)
+        vertical = solve_helmert(placed, vertical_observer(sampler), hold_displacement=hold)
+        if vertical.converged and _spread(observe, vertical.T.apply(placed)) < start_spread:
+            model, start = "vertical+surface", vertical.T
         else:
-            observe = point_observer(lidar) if method == "icp-point" else plane_observer_icp(lidar)
-        fit = solve_helmert(placed, observe, hold_displacement=hold)
-        return FineResult(fit.T, method, method, fit, 0, time.perf_counter() - t0)
-    sampler = SurfaceSampler.from_grid(reference.base)
-    fit = solve_helmert(placed, vertical_observer(sampler), hold_displacement=hold)
-    model, n_planes = "vertical", 0
-    radius = 2.5 * max(reference.spacing, reference.base_cell / 4)
-    after_vertical = fit.T.apply(placed)
-    lidar = lidar_near(reference, after_vertical[:, :2], radius)
-    if len(lidar) >= PATCH_POINTS:
-        observe = plane_observer(lidar, radius)
-        n_planes = int(observe(after_vertical)[2].sum())
-        if n_planes >= MIN_PLANES:
-            planes = solve_helmert(after_vertical, observe, hold_displacement=hold,
-                                   fixed=fit.held)
-            if planes.converged or not fit.converged:
-                fit = _compose(fit, planes)
-                model = "planes"
-    return FineResult(fit.T, "lsm", model, fit, n_planes, time.perf_counter() - t0)
+            model = "surface"
+        if observe is _no_observations:  # no lidar points (an empty corridor): the grid alone
+            model, start = "vertical", Transform.identity()
+            observe = vertical_observer(sampler)
+            start_spread = _spread(observe, placed)
+    fit = solve_helmert(start.apply(placed), observe, hold_displacement=hold)
+    fit = replace(fit, T=fit.T @ start)
+    if method == "lsm" and model != "vertical" and fit.n_observed >= 10:
+        # again from there, with the lidar right around the tie points only: far from the answer
+        # the nearest point in 3-D may lie beside a tie point (up a slope, on the next crown)
+        q = fit.T.apply(placed)
+        close = _within(lidar, q[:, :2], 2.5 * reference.spacing)
+        if len(close) >= MIN_LIDAR:
+            near = nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True)
+            again = solve_helmert(q, near, hold_displacement=hold)
+            if again.n_observed >= 10:
+                fit = replace(again, T=again.T @ fit.T)
+    refused = _refusal(fit, placed, observe, start_spread, MAX_MOVE_CELLS * cell_size)
+    return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused)
+
+
+def _within(points: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:
+    """The ``points`` within ``radius`` (in plan) of any of ``xy``."""
+    dist, _ = cKDTree(xy).query(points[:, :2], distance_upper_bound=radius)
+    return points[np.isfinite(dist)]
+
+
+def _spread(observe: Observer, q: np.ndarray) -> float:
+    """The robust spread (NMAD) of the distances of ``q`` to the surface; inf without any."""
+    r, _, ok = observe(q)
+    r = r[ok & np.isfinite(r)]
+    return nmad(r) if len(r) >= 10 else math.inf
+
+
+def _refusal(fit: HelmertFit, placed: np.ndarray, observe: Observer, start_spread: float,
+             max_move: float) -> str:
+    """Why the fine answer must not replace the coarse pose ("" when it may)."""
+    if fit.n_observed < 10:
+        return "too few tie points have a lidar surface near them"
+    moved = float(np.sqrt(np.mean(np.sum((fit.T.apply(placed) - placed) ** 2, axis=1))))
+    if not math.isfinite(moved) or moved > max_move:
+        return (f"it would move the block by {moved:.3g} (RMS), more than the coarse stage's "
+                f"uncertainty ({max_move:.3g})")
+    end_spread = _spread(observe, fit.T.apply(placed))
+    if not end_spread <= start_spread * 1.02:
+        return (f"it leaves the tie points farther from the lidar surface (spread "
+                f"{end_spread:.3g} against {start_spread:.3g} at the coarse pose)")
+    return ""
 
 
 def _no_observations(q: np.ndarray):
     return np.full(len(q), np.nan), np.zeros((len(q), 3)), np.zeros(len(q), bool)
-
-
-def _compose(first: HelmertFit, second: HelmertFit) -> HelmertFit:
-    """The second fit (made on points already moved by the first) after the first."""
-    return replace(second, T=second.T @ first.T)
