@@ -211,3 +211,46 @@ def test_lsm_finds_the_canopy_surface_where_the_grid_mean_is_metres_off():
                       cell_size=20.0)
     assert result.fine is not None and not result.fine.refused
     assert rms(result.T_ref_mov) < 0.3  # metres (tie noise 0.15 m / 0.3 m, lidar 1 per m^2)
+
+
+def test_block_jackknife_matches_refitting_without_each_block():
+    # slow, obvious reference: solve the weighted least squares again without each block
+    from tiereg.fine.solver import block_jackknife_sd
+
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 100, (400, 2))
+    A = np.column_stack([np.ones(400), xy[:, 0] / 100, xy[:, 1] / 100])
+    r = rng.normal(0, 1, 400) + np.where(xy[:, 0] > 60, 0.5, 0.0)  # an error correlated in space
+    w = rng.uniform(0.5, 1.0, 400)
+    # blocks: a 4 x 4 grid over the points' bounding box
+    u = (xy - xy.min(axis=0)) / (xy.max(axis=0) - xy.min(axis=0))
+    label = (np.minimum(u[:, 0] * 4 // 1, 3) * 4 + np.minimum(u[:, 1] * 4 // 1, 3)).astype(int)
+    steps = []
+    for k in np.unique(label):
+        keep = label != k
+        sw = np.sqrt(w[keep])
+        steps.append(np.linalg.lstsq(A[keep] * sw[:, None], -r[keep] * sw, rcond=None)[0])
+    d = np.array(steps)
+    expected = np.sqrt((len(d) - 1) / len(d) * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
+    np.testing.assert_allclose(block_jackknife_sd(A, w, r, xy), expected, rtol=1e-9)
+
+
+def test_precision_covers_an_error_that_is_correlated_in_space():
+    # one corner of the block (a sixteenth: a forest stand, a construction site) is 1 m higher
+    # than the points believe: the height offset is biased by far more than independent noise
+    # allows; the formal precision would not say so, the reported one does
+    rng = np.random.default_rng(7)
+    p = _points(rng, 800)
+    q0 = p + rng.normal(0, [0.0, 0.0, 0.3], p.shape)
+
+    def misfit(q):
+        r, g, ok = _vertical(q)
+        return r - np.where((q[:, 0] > 150) & (q[:, 1] > 150), 1.0, 0.0), g, ok
+
+    clean = solve_helmert(q0, _vertical, hold_displacement=5.0)
+    fit = solve_helmert(q0, misfit, hold_displacement=5.0)
+    tz = PARAMETERS.index("tz")
+    err_z = fit.T.apply(fit.centre[None])[0, 2] - fit.centre[2]  # the truth: no move at all
+    assert abs(err_z) > 5 * 0.3 / np.sqrt(len(p))  # metres: not explained by the noise alone
+    assert abs(err_z) <= 3 * fit.sigma[tz]
+    assert fit.sigma[tz] > 2 * clean.sigma[tz]
