@@ -25,7 +25,11 @@ EXAMPLES = {
   tiereg register tiepoints.txt lidar.laz -o RESULT.json
   tiereg register sparse/0 tiles/ -o RESULT.json --output-points tie_in_lidar_frame.laz
   tiereg register points3D.txt 'tiles/*.laz' -o RESULT.json --cell-size 40 -q
-  tiereg register ties.txt lidar.laz -o RESULT.json --coarse none --initial approx.txt""",
+  tiereg register ties.txt lidar.laz -o RESULT.json --coarse none --initial approx.txt
+  tiereg register ties.txt lidar.laz -o RESULT.json --report report/""",
+    "report": """examples:
+  tiereg report RESULT.json report/     (run where `tiereg register` ran: it reads the inputs again)
+  then open report/report.html in a browser""",
     "apply": """examples:
   tiereg apply RESULT.json tiepoints.txt tiepoints_registered.txt
   tiereg apply RESULT.json model.ply model_georef.ply
@@ -105,11 +109,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--initial", metavar="TRANSFORM",
                    help="a starting pose (RESULT.json or a 16-number matrix file); with "
                    "--coarse none the fine stage starts from it")
+    p.add_argument("--report", metavar="DIR",
+                   help="write a report: maps, histograms, statistics, control points, report.html")
     p.add_argument("--output-points", metavar="PATH",
                    help="also write the moving points in the reference frame (format by suffix)")
     p.add_argument("--moving-format", metavar="FMT", help="override format detection")
     p.add_argument("--reference-format", metavar="FMT", help="override format detection")
     p.add_argument("--seed", type=int, default=0, help="random seed (for reproducible sampling)")
+
+    p = add("report", "Write the report of an earlier registration from its RESULT.json.")
+    p.add_argument("result", metavar="RESULT.json")
+    p.add_argument("out", metavar="DIR", help="report folder (created if needed)")
 
     p = add("apply", "Apply a transform (RESULT.json or a 4x4 matrix file) to a point file or DSM.")
     p.add_argument("transform", metavar="TRANSFORM", help="RESULT.json, JSON with 'matrix', or "
@@ -177,19 +187,34 @@ def _setup_logging(args: argparse.Namespace) -> None:
 
 
 def _summary(result) -> str:
+    """What was found, how confident, how precise and how good: a few lines for the terminal."""
     p = result.T_ref_mov.parameters()
-    q = result.quality
+    d = p.to_dict()
+    units = result.inputs.units
+    stages = [f"coarse {result.coarse.method}" if result.coarse else "no coarse stage"]
+    if result.fine is not None:
+        stages.append(f"fine {result.fine.method} ({result.fine.model})")
     lines = [
         f"confident:   {'yes' if result.confident else 'NO'} (confidence {result.confidence:.2f})",
+        f"found:       scale {p.scale:.6f}, heading {d['kappa_deg']:.3f} deg, tilt "
+        f"{d['omega_deg']:.3f} / {d['phi_deg']:.3f} deg ({', '.join(stages)})",
         f"translation: {p.translation[0]:.3f} {p.translation[1]:.3f} {p.translation[2]:.3f} "
-        f"({result.inputs.units})",
-        f"scale {p.scale:.6f}, kappa {p.to_dict()['kappa_deg']:.3f} deg, "
-        f"cell {result.cell_size:g}",
+        f"({units}), cell {result.cell_size:g}",
     ]
+    if result.fine is not None and not result.fine.refused:
+        t = result.fine.precision(p.scale)["translation"]
+        if any(v is not None for v in t):
+            lines.append("precision:   " + " / ".join("held" if v is None else f"{v:.3f}"
+                                                      for v in t)
+                         + f" ({units}, 1 sigma x / y / z at the block centre)")
+    q, b = result.quality, result.residuals.stats(after=False) if result.residuals else None
     if q.n_used:
-        lines.append(f"height residuals at {q.n_used}/{q.n_moving} points: median {q.median_dz:.3f}"
-                     f", NMAD {q.nmad_dz:.3f}, RMSE {q.rmse_z:.3f}")
+        was = f" (before the fine stage {b.nmad_dz:.3f})" if b is not None and b.n_used and \
+            result.fine is not None else ""
+        lines.append(f"heights:     at {q.n_used}/{q.n_moving} points median {q.median_dz:.3f}, "
+                     f"NMAD {q.nmad_dz:.3f}{was}, RMSE {q.rmse_z:.3f}")
     lines.extend(f"note:        {r}" for r in result.reasons)
+    lines.extend(f"warning:     {w}" for w in result.warnings)
     return "\n".join(lines)
 
 
@@ -202,6 +227,8 @@ def _cmd_register(args: argparse.Namespace) -> int:
     check_writable(out)  # fail before any work if the result could not be written
     if args.output_points:
         check_writable(args.output_points)
+    if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
+        raise InputError(f"--report {args.report}: is a file; give a folder for the report")
     initial = _load_transform(args.initial) if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
                       cell_size=args.cell_size, initial=initial,
@@ -214,10 +241,33 @@ def _cmd_register(args: argparse.Namespace) -> int:
         moving = read_points(args.moving, format=args.moving_format)
         write_points(args.output_points, result.T_ref_mov.apply(moving.xyz))
     write_text_atomic(out, result.to_json() + "\n")
+    report = None
+    if args.report:
+        from .report import write_report
+
+        report = write_report(result, args.report)
     if not args.quiet:
         print(_summary(result))
         print(f"result:      {out}")
+        if report is not None:
+            print(_report_line(report))
     return EXIT_OK if result.confident else EXIT_NOT_CONFIDENT
+
+
+def _report_line(report) -> str:
+    n = len(report.control_points)
+    cps = f", {n} lidar control points" if n else ""
+    return f"report:      {report.html}{cps}"
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .report import report_from_result_file
+
+    report = report_from_result_file(args.result, args.out,
+                                     progress=_progress_factory(args.quiet))
+    if not args.quiet:
+        print(_report_line(report))
+    return EXIT_OK
 
 
 def _load_transform(path: str):
@@ -285,7 +335,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     true, est = outcome.T_ref_mov_true.parameters(), r.T_ref_mov.parameters()
     centre_true, centre_est = outcome.block_centre_true, outcome.block_centre_est
     print("tiereg demo: Autzen 2010 lidar (110,000 points, feet) and 1,500 tie points made from "
-          "it with a known shift, registered with no initial guess (translation search)")
+          "it with a known shift, registered with no initial guess")
     print(f"{'':11}{'scale':>10}{'kappa deg':>11}{'block centre x':>17}{'y':>14}{'z':>10}")
     for name, p, c in (("truth", true, centre_true), ("recovered", est, centre_est)):
         print(f"{name:11}{p.scale:10.5f}{np.degrees(p.kappa):11.3f}{c[0]:17.3f}{c[1]:14.3f}"
@@ -296,6 +346,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
           f"   (horizontal {outcome.error_cells:.3f} cell of {r.cell_size:g} ft)")
     print(_summary(r))
     print(f"wrote {Path(args.out) / 'RESULT.json'}, tiepoints.xyz, truth.json")
+    print(_report_line(outcome.report))
     return EXIT_OK if r.confident else EXIT_NOT_CONFIDENT
 
 
@@ -338,7 +389,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"register": _cmd_register, "simulate": _cmd_simulate, "apply": _cmd_apply,
+COMMANDS = {"register": _cmd_register, "report": _cmd_report, "simulate": _cmd_simulate,
+            "apply": _cmd_apply,
             "grid": _cmd_grid,
             "info": _cmd_info, "demo": _cmd_demo}
 

@@ -18,6 +18,7 @@ from .io.base import write_text_atomic
 from .io.text import write_xyz
 from .pipeline import RegistrationResult, register
 from .progress import ProgressFactory
+from .report import Report, write_report
 from .transform import Transform
 
 N_TIE_POINTS = 1500
@@ -40,6 +41,7 @@ class DemoOutcome:
     error_cells: float  # horizontal error in grid cells
     block_centre_true: np.ndarray  # the tie-point centroid mapped by the truth
     block_centre_est: np.ndarray  # ... and by the result
+    report: Report
 
 
 def make_tie_points(lidar_xyz: np.ndarray, *, seed: int = 0) -> np.ndarray:
@@ -70,8 +72,9 @@ def run_demo(out_dir: str | Path, *, seed: int = 0,
     write_text_atomic(out / "truth.json", json.dumps(truth.to_dict(), indent=2) + "\n")
     result = register(tie_path, lidar, progress=progress)
     write_text_atomic(out / "RESULT.json", result.to_json() + "\n")
+    report = write_report(result, out / "report")
     centre = tie.mean(axis=0, keepdims=True)
     c_true, c_est = truth.apply(centre)[0], result.T_ref_mov.apply(centre)[0]
     error = c_est - c_true
     return DemoOutcome(result, truth, error, float(np.hypot(error[0], error[1]) / result.cell_size),
-                       c_true, c_est)
+                       c_true, c_est, report)

@@ -27,7 +27,7 @@ from .io import PointSource, open_points
 from .io.base import ArraySource
 from .points import PointSet, validate_points
 from .progress import ProgressFactory, no_progress
-from .quality import HeightStats
+from .quality import HeightStats, PointResiduals
 from .reference import Reference, base_cell_for, point_spacing, prepare_reference
 from .surface import SurfaceSampler
 from .transform import Transform
@@ -77,6 +77,10 @@ class RegistrationResult:
     fine_note: str = ""
     warnings: tuple[str, ...] = ()
     T_initial: Transform | None = None  # the starting pose given by the caller, if any
+    residuals: PointResiduals | None = field(default=None, repr=False, compare=False)
+    # the prepared reference (its base grid): for reports and control points, and to register
+    # more blocks against the same lidar without reading it again
+    reference: Reference | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         stages: list[dict[str, Any]] = []
@@ -102,6 +106,7 @@ class RegistrationResult:
             "reasons": list(self.reasons),
             "warnings": list(self.warnings),
             "cell_size": self.cell_size,
+            "base_cell": None if self.reference is None else self.reference.base_cell,
             "seconds": round(self.seconds, 3),
             "stages": stages,
             "quality": self.quality.to_dict(),
@@ -152,9 +157,14 @@ def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Trans
     return Transform.from_translation(o_ref) @ T_local @ Transform.from_translation(-o_mov)
 
 
-def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
+def height_differences(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> np.ndarray:
+    """``Z(x, y) - z`` of points (the sampler's local frame) on the surface; NaN off it."""
     z, ok = sampler.sample(xyz_ref[:, 0], xyz_ref[:, 1])
-    return HeightStats.from_dz((z - xyz_ref[:, 2])[ok], len(xyz_ref))
+    return np.where(ok, z - xyz_ref[:, 2], np.nan)
+
+
+def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
+    return HeightStats.from_dz(height_differences(xyz_ref, sampler), len(xyz_ref))
 
 
 def register(
@@ -260,6 +270,7 @@ def register(
         confident, confidence = coarse_result.confident, coarse_result.confidence
         reasons.extend(coarse_result.reasons)
 
+    T_before_fine = T_local
     fine_result: FineResult | None = None
     warnings: list[str] = []
     fine_note = "not asked for (--fine none)"
@@ -277,7 +288,14 @@ def register(
     elif fine != "none":
         fine_note = "skipped: the coarse answer is not confident"
 
-    after = _height_stats(T_local.apply(mov_local), sampler)
+    placed = T_local.apply(mov_local)
+    dz_after = height_differences(placed, sampler)
+    after = HeightStats.from_dz(dz_after, len(placed))
+    accepted = fine_result is not None and not fine_result.refused
+    residuals = PointResiduals.from_dz(
+        placed + o_ref, height_differences(T_before_fine.apply(mov_local), sampler), dz_after,
+        np.where(np.isfinite(fine_result.fit.residuals), fine_result.fit.weights, np.nan)
+        if accepted else None)
     T_ref_mov = _to_world(T_local, o_ref, o_mov) @ T_start
     inputs = Inputs(
         moving=mov_src.info.path,
@@ -303,4 +321,6 @@ def register(
         fine_note=fine_note,
         warnings=tuple(warnings),
         T_initial=initial,
+        residuals=residuals,
+        reference=ref,
     )

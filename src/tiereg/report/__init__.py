@@ -1,0 +1,223 @@
+"""The registration report: maps, histograms, statistics, coarse evidence and control points.
+
+``write_report(result, out_dir)`` writes into ``out_dir``:
+
+- ``report.html``: one self-contained page (pictures embedded, readable offline);
+- ``dz_before.png`` / ``dz_after.png``: height-difference maps (tie points against the lidar
+  surface) before and after the fine stage, with colour and scale bars, and the same as
+  ``dz_before.tif`` / ``dz_after.tif`` (median per cell, the reference's CRS);
+- ``residual_histogram.png``, ``coarse_candidates.png`` (when a coarse stage ran);
+- ``residuals.csv``: per tie point ``x, y, z, dz_before, dz_after, weight, blunder``;
+- ``control_points.csv``, ``control_points.txt`` (``name x y z sx sy sz``) and
+  ``control_points_colmap.txt``: lidar control points (:mod:`tiereg.control`).
+
+Every file is written whole or not at all.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..control import (
+    ControlPoint,
+    control_points_colmap,
+    control_points_csv,
+    control_points_list,
+    select_control_points,
+)
+from ..errors import InputError, OutputError
+from ..grid import GridSpec, rasterize
+from ..io.base import atomic_output, write_text_atomic
+from ..io.raster import write_geotiff
+from ..quality import HeightStats, PointResiduals
+from . import figures
+from .html import image, page, parameters_table, stats_table
+
+__all__ = ["Report", "report_from_result_file", "write_report"]
+
+
+@dataclass(frozen=True)
+class Report:
+    """What a report wrote: its folder, the page, and the control points it selected."""
+
+    directory: Path
+    html: Path
+    files: tuple[str, ...]
+    control_points: tuple[ControlPoint, ...]
+
+
+def write_report(result, out_dir: str | os.PathLike[str]) -> Report:
+    """Write the report of a :class:`~tiereg.RegistrationResult` into ``out_dir``."""
+    if result.residuals is None:
+        raise InputError("the result has no per-point residuals; register again with this "
+                         "version of tiereg")
+    control: tuple[ControlPoint, ...] = ()
+    if result.reference is not None and result.confident:
+        prec = result.fine.precision(1.0) if result.fine is not None and not \
+            result.fine.refused else None
+        sxy = None
+        if prec and prec["translation"][0] is not None and prec["translation"][1] is not None:
+            sxy = float(np.hypot(prec["translation"][0], prec["translation"][1]) / np.sqrt(2))
+        local = result.residuals.xyz - result.reference.origin
+        control = select_control_points(local, result.reference, blunder=result.residuals.blunder,
+                                        sigma_xy=sxy)
+    return _write(result.to_dict(), result.residuals, control, Path(out_dir),
+                  crs_wkt=result.inputs.crs_wkt)
+
+
+def report_from_result_file(result_json: str | os.PathLike[str],
+                            out_dir: str | os.PathLike[str], *, progress=None) -> Report:
+    """The report of an earlier registration, from its RESULT.json and the inputs it names."""
+    from ..io import open_points
+    from ..pipeline import register
+    from ..reference import prepare_reference
+    from ..transform import Transform
+
+    path = Path(result_json)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        T_final = Transform(np.asarray(data["T_ref_mov"], dtype=np.float64))
+        inputs, cell = data["inputs"], float(data["cell_size"])
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file; give the RESULT.json of a registration") from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        raise InputError(f"{path}: not a tiereg RESULT.json (T_ref_mov, inputs and cell_size are "
+                         "needed); give the file `tiereg register -o` wrote") from None
+    coarse = next((s for s in data.get("stages", []) if s.get("name") == "coarse"
+                   and s.get("T_ref_mov")), None)
+    before = coarse["T_ref_mov"] if coarse else data.get("T_initial") or data["T_ref_mov"]
+    T_before = Transform(np.asarray(before, dtype=np.float64))
+    for role in ("moving", "reference"):
+        name = str(inputs.get(role, ""))
+        if not name or name.startswith("<") or not any(Path(p).exists() for p in name.split(",")):
+            raise InputError(f"{path}: the {role} input it names ({name or 'none'}) is not found; "
+                             "run `tiereg report` where `tiereg register` ran")
+    ref_paths = [p for p in str(inputs["reference"]).split(",") if p]
+    source = open_points(ref_paths if len(ref_paths) > 1 else ref_paths[0],
+                         format=inputs.get("reference_format"))
+    base_cell = data.get("base_cell") or cell / 4  # the same surface as the registration's
+    reference = prepare_reference(source, base_cell=float(base_cell), progress=progress)
+    opts = dict(coarse="none", fine="none", cell_size=cell,
+                moving_format=inputs.get("moving_format"))
+    after = register(inputs["moving"], reference, initial=T_final, **opts)
+    prior = register(inputs["moving"], reference, initial=T_before, **opts)
+    assert after.residuals is not None and prior.residuals is not None
+    residuals = PointResiduals.from_dz(after.residuals.xyz, prior.residuals.dz_after,
+                                       after.residuals.dz_after)
+    control = ()
+    if data.get("confident") and after.reference is not None:
+        control = select_control_points(after.residuals.xyz - after.reference.origin,
+                                        after.reference, blunder=residuals.blunder)
+    return _write(data, residuals, control, Path(out_dir), crs_wkt=after.inputs.crs_wkt)
+
+
+def _dz_grid(xy: np.ndarray, dz: np.ndarray, cell: float) -> tuple[np.ndarray, GridSpec] | None:
+    ok = np.isfinite(dz)
+    if ok.sum() == 0:
+        return None
+    lo, hi = xy[ok].min(axis=0), xy[ok].max(axis=0)
+    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], cell, max_cells=20_000_000)
+    grid = rasterize(np.column_stack([xy[ok], dz[ok]]), spec, stats=("median",))
+    return grid["median"], spec
+
+
+def _write(data: dict[str, Any], residuals: PointResiduals,
+           control: tuple[ControlPoint, ...], out: Path, *, crs_wkt: str | None) -> Report:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the report folder ({exc.strerror}); give a "
+                          "folder you can write to") from None
+    units = str(data.get("inputs", {}).get("units", "unknown"))
+    xy = residuals.xyz[:, :2]
+    after, before = residuals.stats(), residuals.stats(after=False)
+    limit = _colour_limit(after, before)
+    pictures: dict[str, bytes] = {
+        "dz_before.png": figures.height_difference_map(
+            xy, residuals.dz_before, title="before the fine stage", limit=limit, units=units),
+        "dz_after.png": figures.height_difference_map(
+            xy, residuals.dz_after, title="after registration", limit=limit, units=units,
+            blunder=residuals.blunder),
+        "residual_histogram.png": figures.residual_histogram(
+            residuals.dz_before, residuals.dz_after, limit=2 * limit, units=units),
+    }
+    coarse = next((s for s in data.get("stages", []) if s.get("name") == "coarse"), None)
+    if coarse and coarse.get("verified"):
+        pictures["coarse_candidates.png"] = figures.coarse_candidates(
+            coarse["verified"], coarse.get("search_best"), coarse.get("rival"))
+    files = []
+    for name, png in pictures.items():
+        with atomic_output(out / name) as tmp:
+            tmp.write_bytes(png)
+        files.append(name)
+    cell = float(data.get("cell_size") or 1.0)
+    for name, dz in (("dz_before.tif", residuals.dz_before), ("dz_after.tif", residuals.dz_after)):
+        g = _dz_grid(xy, dz, cell)
+        if g is not None:
+            write_geotiff(out / name, g[0], g[1], crs_wkt=crs_wkt)
+            files.append(name)
+    write_text_atomic(out / "residuals.csv", residuals.to_csv())
+    files.append("residuals.csv")
+    if control:
+        for name, text in (("control_points.csv", control_points_csv(control)),
+                           ("control_points.txt", control_points_list(control)),
+                           ("control_points_colmap.txt", control_points_colmap(control))):
+            write_text_atomic(out / name, text)
+            files.append(name)
+    html_text = page(data=data, title="tiereg registration report", sections=_sections(
+        data, pictures, before, after, control, limit, units, files))
+    write_text_atomic(out / "report.html", html_text)
+    files.append("report.html")
+    return Report(out, out / "report.html", tuple(files), control)
+
+
+def _colour_limit(after: HeightStats, before: HeightStats) -> float:
+    """Symmetric colour limit that resolves the final residuals: three NMADs of them (blunders
+    and a worse "before" saturate)."""
+    for s in (after, before):
+        if s.nmad_dz is not None and s.nmad_dz > 0:
+            return float(3.0 * s.nmad_dz)
+    return 1.0
+
+
+def _sections(data, pictures, before, after, control, limit, units, files):
+    from .html import _e
+
+    sections = [("Transform (moving to reference)", parameters_table(
+        data.get("parameters", {}), data.get("precision") or {}))]
+    maps = "".join(image(pictures[n], n, c) for n, c in (
+        ("dz_before.png", f"before the fine stage; colour limits +/-{limit:.3g} {units}"),
+        ("dz_after.png", "after registration; circled: blunders set aside")))
+    sections.append(("Height differences: lidar surface minus tie point",
+                     f'<div class="maps">{maps}</div>'))
+    sections.append(("Residual statistics", stats_table(before.to_dict(), after.to_dict(), units)
+                     + image(pictures["residual_histogram.png"], "histogram",
+                             "distribution of the height differences")))
+    stages = data.get("stages", [])
+    rows = "".join(f"<tr><td>{_e(s.get('name'))}</td><td>{_e(s.get('method'))}</td>"
+                   f"<td>{float(s.get('seconds') or 0):.2f}</td></tr>" for s in stages)
+    evidence = f"<table><tr><th>stage</th><th>method</th><th>seconds</th></tr>{rows}</table>"
+    if "coarse_candidates.png" in pictures:
+        evidence += image(pictures["coarse_candidates.png"], "coarse candidates",
+                          "each hypothesis the coarse stage verified; the chosen one and the best "
+                          "genuinely different rival")
+    sections.append(("Stages and coarse evidence", evidence))
+    if control:
+        kinds = {k: sum(p.kind == k for p in control) for k in ("height", "xyz")}
+        head = "".join(f"<tr><td>{_e(p.name)}</td><td>{p.xyz[0]:.3f}</td><td>{p.xyz[1]:.3f}</td>"
+                       f"<td>{p.xyz[2]:.3f}</td><td>{p.sigma[2]:.3f}</td><td>{_e(p.kind)}</td></tr>"
+                       for p in control[:15])
+        sections.append(("Lidar control points", (
+            f"<p>{len(control)} tie points on planar, gently sloped, smooth lidar patches, spread "
+            f"over the block ({kinds['height']} height only, {kinds['xyz']} full position); "
+            "files: control_points.csv, control_points.txt, control_points_colmap.txt.</p>"
+            "<table><tr><th>name</th><th>x</th><th>y</th><th>z</th><th>sz</th><th>kind</th></tr>"
+            f"{head}</table>")))
+    sections.append(("Files", "<ul>" + "".join(f"<li>{_e(f)}</li>" for f in files) + "</ul>"))
+    return sections
