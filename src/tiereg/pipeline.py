@@ -46,6 +46,8 @@ class Inputs:
     n_reference: int
     crs_wkt: str | None = field(default=None, repr=False)
     units: str = "unknown"
+    moving_args: tuple[str, ...] = ()  # the paths as given (to read the inputs again)
+    reference_args: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -56,6 +58,8 @@ class Inputs:
             "n_reference": self.n_reference,
             "units": self.units,
             "crs": crs_label(self.crs_wkt),
+            "moving_paths": list(self.moving_args),
+            "reference_paths": list(self.reference_args),
         }
 
 
@@ -152,6 +156,18 @@ def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> 
     return open_points(points, format=fmt)
 
 
+def _path_args(points: object) -> tuple[str, ...]:
+    """The paths a caller gave (absolute), or () for arrays, point sets and prepared sources."""
+    if isinstance(points, (str, os.PathLike)):
+        return (os.path.abspath(os.fspath(points)),)
+    if isinstance(points, Sequence) and points and all(
+            isinstance(p, (str, os.PathLike)) for p in points):
+        return tuple(os.path.abspath(os.fspath(p)) for p in points)
+    if isinstance(points, Reference):
+        return points.source_args
+    return ()
+
+
 def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Transform:
     """``T_ref_mov`` in file coordinates from one between the two local (centred) frames."""
     return Transform.from_translation(o_ref) @ T_local @ Transform.from_translation(-o_mov)
@@ -242,6 +258,7 @@ def register(
         finest = cell_size if coarse in ("pomf", "none") else cell_size / 4
         ref = prepare_reference(ref_src, base_cell=base_cell_for(finest, point_spacing(ref_src)),
                                 progress=progress)
+        ref = replace(ref, source_args=_path_args(reference))
     ref_src, o_ref = ref.source, ref.origin
     grid = ref.grid(cell_size)
     cell_size = grid.spec.cell_size
@@ -305,6 +322,8 @@ def register(
         n_reference=ref_src.info.count,
         crs_wkt=ref_src.info.crs_wkt,
         units=crs_units(ref_src.info.crs_wkt),
+        moving_args=_path_args(moving),
+        reference_args=_path_args(reference),
     )
     return RegistrationResult(
         T_ref_mov=T_ref_mov,

@@ -37,6 +37,7 @@ class Reference:
     base: Grid = field(repr=False)
     first_returns_only: bool
     _cache: dict[int, Grid] = field(default_factory=dict, repr=False, compare=False)
+    source_args: tuple[str, ...] = ()  # the paths it was read from, when known
 
     @property
     def base_cell(self) -> float:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -93,20 +93,23 @@ def report_from_result_file(result_json: str | os.PathLike[str],
                    and s.get("T_ref_mov")), None)
     before = coarse["T_ref_mov"] if coarse else data.get("T_initial") or data["T_ref_mov"]
     T_before = Transform(np.asarray(before, dtype=np.float64))
+    given = {}
     for role in ("moving", "reference"):
-        name = str(inputs.get(role, ""))
-        if not name or name.startswith("<") or not any(Path(p).exists() for p in name.split(",")):
-            raise InputError(f"{path}: the {role} input it names ({name or 'none'}) is not found; "
-                             "run `tiereg report` where `tiereg register` ran")
-    ref_paths = [p for p in str(inputs["reference"]).split(",") if p]
-    source = open_points(ref_paths if len(ref_paths) > 1 else ref_paths[0],
-                         format=inputs.get("reference_format"))
+        paths = [str(p) for p in inputs.get(f"{role}_paths") or []]
+        missing = [p for p in paths if not Path(p).exists() and not any(c in p for c in "*?[")]
+        if not paths or missing:
+            name = missing[0] if missing else inputs.get(role, "none")
+            raise InputError(f"{path}: the {role} input it names ({name}) is not found "
+                             "(arrays are not kept); register again with --report DIR")
+        given[role] = paths if len(paths) > 1 else paths[0]
+    source = open_points(given["reference"], format=inputs.get("reference_format"))
     base_cell = data.get("base_cell") or cell / 4  # the same surface as the registration's
-    reference = prepare_reference(source, base_cell=float(base_cell), progress=progress)
+    reference = replace(prepare_reference(source, base_cell=float(base_cell), progress=progress),
+                        source_args=tuple(inputs["reference_paths"]))
     opts = dict(coarse="none", fine="none", cell_size=cell,
                 moving_format=inputs.get("moving_format"))
-    after = register(inputs["moving"], reference, initial=T_final, **opts)
-    prior = register(inputs["moving"], reference, initial=T_before, **opts)
+    after = register(given["moving"], reference, initial=T_final, **opts)
+    prior = register(given["moving"], reference, initial=T_before, **opts)
     assert after.residuals is not None and prior.residuals is not None
     residuals = PointResiduals.from_dz(after.residuals.xyz, prior.residuals.dz_after,
                                        after.residuals.dz_after)
