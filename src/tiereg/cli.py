@@ -27,6 +27,9 @@ EXAMPLES = {
   tiereg register points3D.txt 'tiles/*.laz' -o RESULT.json --cell-size 40 -q
   tiereg register ties.txt lidar.laz -o RESULT.json --coarse none --initial approx.txt
   tiereg register ties.txt lidar.laz -o RESULT.json --report report/""",
+    "overlap": """examples:
+  tiereg overlap tiepoints.txt lidar.laz
+  tiereg overlap sparse/0 tiles/ --out overlap/   (overlap.json, overlap.geojson, overlap.png)""",
     "report": """examples:
   tiereg report RESULT.json report/     (run where `tiereg register` ran: it reads the inputs again)
   then open report/report.html in a browser""",
@@ -116,6 +119,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--moving-format", metavar="FMT", help="override format detection")
     p.add_argument("--reference-format", metavar="FMT", help="override format detection")
     p.add_argument("--seed", type=int, default=0, help="random seed (for reproducible sampling)")
+
+    p = add("overlap", "Do MOVING and REFERENCE overlap, and where? A quick answer from the "
+                       "coarse registration.")
+    p.add_argument("moving", metavar="MOVING")
+    p.add_argument("reference", metavar="REFERENCE", nargs="+")
+    p.add_argument("--out", metavar="DIR", help="write overlap.json, overlap.geojson (the "
+                   "outline) and overlap.png")
+    p.add_argument("--coarse", choices=COARSE, default="auto", help="coarse method (default auto)")
+    p.add_argument("--cell-size", type=float, metavar="M")
+    p.add_argument("--moving-format", metavar="FMT")
+    p.add_argument("--reference-format", metavar="FMT")
 
     p = add("report", "Write the report of an earlier registration from its RESULT.json.")
     p.add_argument("result", metavar="RESULT.json")
@@ -260,6 +274,30 @@ def _report_line(report) -> str:
     return f"report:      {report.html}{cps}"
 
 
+def _cmd_overlap(args: argparse.Namespace) -> int:
+    from .overlap import check_overlap, write_overlap
+
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError(f"--out {args.out}: is a file; give a folder")
+    reference = args.reference if len(args.reference) > 1 else args.reference[0]
+    result = check_overlap(args.moving, reference, cell_size=args.cell_size, coarse=args.coarse,
+                           moving_format=args.moving_format,
+                           reference_format=args.reference_format,
+                           progress=_progress_factory(args.quiet))
+    files = write_overlap(result, args.out) if args.out else ()
+    if not args.quiet:
+        r = result.registration
+        print(f"{result.verdict} (confidence {r.confidence:.2f})")
+        if result.confident:
+            print(f"area:        {result.area:,.0f} square {r.inputs.units} "
+                  f"({len(result.outline['coordinates'])} part(s))")
+        lines = _summary(r).splitlines()
+        print("\n".join(line for line in lines if not line.startswith("confident:")))
+        if files:
+            print(f"wrote:       {', '.join(str(Path(args.out) / f) for f in files)}")
+    return EXIT_OK if result.confident else EXIT_NOT_CONFIDENT
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from .report import report_from_result_file
 
@@ -389,7 +427,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"register": _cmd_register, "report": _cmd_report, "simulate": _cmd_simulate,
+COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_report, "simulate": _cmd_simulate,
             "apply": _cmd_apply,
             "grid": _cmd_grid,
             "info": _cmd_info, "demo": _cmd_demo}

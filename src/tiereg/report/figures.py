@@ -125,3 +125,28 @@ def coarse_candidates(candidates: list[dict], chosen: dict | None, rival: dict |
     if chosen or rival:
         ax.legend(fontsize=8)
     return _png(fig)
+
+
+def overlap_picture(reference_xy: np.ndarray, placed_xy: np.ndarray, on: np.ndarray,
+                    outline: dict, *, title: str, units: str) -> bytes:
+    """The reference's footprint (a thinned sample of its cells), the placed tie points (on and
+    off the reference) and the overlap outline."""
+    plt = _pyplot()
+    allxy = np.vstack([reference_xy, placed_xy]) if len(reference_xy) else placed_xy
+    lo = np.floor(allxy.min(axis=0))
+    span = np.maximum(allxy.max(axis=0) - lo, 1e-9)
+    fig, ax = plt.subplots(figsize=(6.4, float(np.clip(6.0 * span[1] / span[0], 3.0, 8.0))))
+    if len(reference_xy):
+        ax.scatter(*(reference_xy - lo).T, s=1, c="0.82", label="reference", rasterized=True)
+    ax.scatter(*(placed_xy[~on] - lo).T, s=4, c="tab:orange", label="tie points off it")
+    ax.scatter(*(placed_xy[on] - lo).T, s=4, c="tab:blue", label="tie points on it")
+    for poly in outline.get("coordinates", []):
+        ring = np.asarray(poly[0]) - lo
+        ax.plot(ring[:, 0], ring[:, 1], c="black", lw=1.2)
+    _scale_bar(ax, allxy - lo, units)
+    ax.set_aspect("equal")
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel(f"x - {lo[0]:.0f}")
+    ax.set_ylabel(f"y - {lo[1]:.0f}")
+    ax.legend(loc="upper right", fontsize=7, markerscale=3)
+    return _png(fig)
