@@ -58,7 +58,6 @@ def select_control_points(
     ``blunder``: points the registration rejected; ``sigma_xy``: the registration's horizontal
     precision, given to the ``"xyz"`` points.
     """
-    n = len(xyz_local)
     spacing = reference.spacing
     radius = 3.0 * spacing
     lidar = lidar_near(reference, xyz_local[:, :2], radius)

@@ -37,7 +37,7 @@ from ..io.base import atomic_output, write_text_atomic
 from ..io.raster import write_geotiff
 from ..quality import HeightStats, PointResiduals
 from . import figures
-from .html import image, page, parameters_table, stats_table
+from .html import escape, image, page, parameters_table, stats_table
 
 __all__ = ["Report", "report_from_result_file", "write_report"]
 
@@ -190,8 +190,6 @@ def _colour_limit(after: HeightStats, before: HeightStats) -> float:
 
 
 def _sections(data, pictures, before, after, control, limit, units, files):
-    from .html import _e
-
     sections = [("Transform (moving to reference)", parameters_table(
         data.get("parameters", {}), data.get("precision") or {}))]
     maps = "".join(image(pictures[n], n, c) for n, c in (
@@ -203,7 +201,7 @@ def _sections(data, pictures, before, after, control, limit, units, files):
                      + image(pictures["residual_histogram.png"], "histogram",
                              "distribution of the height differences")))
     stages = data.get("stages", [])
-    rows = "".join(f"<tr><td>{_e(s.get('name'))}</td><td>{_e(s.get('method'))}</td>"
+    rows = "".join(f"<tr><td>{escape(s.get('name'))}</td><td>{escape(s.get('method'))}</td>"
                    f"<td>{float(s.get('seconds') or 0):.2f}</td></tr>" for s in stages)
     evidence = f"<table><tr><th>stage</th><th>method</th><th>seconds</th></tr>{rows}</table>"
     if "coarse_candidates.png" in pictures:
@@ -213,8 +211,8 @@ def _sections(data, pictures, before, after, control, limit, units, files):
     sections.append(("Stages and coarse evidence", evidence))
     if control:
         kinds = {k: sum(p.kind == k for p in control) for k in ("height", "xyz")}
-        head = "".join(f"<tr><td>{_e(p.name)}</td><td>{p.xyz[0]:.3f}</td><td>{p.xyz[1]:.3f}</td>"
-                       f"<td>{p.xyz[2]:.3f}</td><td>{p.sigma[2]:.3f}</td><td>{_e(p.kind)}</td></tr>"
+        head = "".join(f"<tr><td>{escape(p.name)}</td><td>{p.xyz[0]:.3f}</td>"
+                       f"<td>{p.xyz[1]:.3f}</td><td>{p.xyz[2]:.3f}</td><td>{p.sigma[2]:.3f}</td><td>{escape(p.kind)}</td></tr>"
                        for p in control[:15])
         sections.append(("Lidar control points", (
             f"<p>{len(control)} tie points on planar, gently sloped, smooth lidar patches, spread "
@@ -222,5 +220,5 @@ def _sections(data, pictures, before, after, control, limit, units, files):
             "files: control_points.csv, control_points.txt, control_points_colmap.txt.</p>"
             "<table><tr><th>name</th><th>x</th><th>y</th><th>z</th><th>sz</th><th>kind</th></tr>"
             f"{head}</table>")))
-    sections.append(("Files", "<ul>" + "".join(f"<li>{_e(f)}</li>" for f in files) + "</ul>"))
+    sections.append(("Files", "<ul>" + "".join(f"<li>{escape(f)}</li>" for f in files) + "</ul>"))
     return sections

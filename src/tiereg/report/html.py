@@ -21,7 +21,7 @@ figcaption{font-size:.85em;color:#555} .muted{color:#666;font-size:.9em}
 """
 
 
-def _e(v: Any) -> str:
+def escape(v: Any) -> str:
     return html.escape(str(v))
 
 
@@ -30,13 +30,13 @@ def _fmt(v: Any, spec: str = ".3f") -> str:
         return "-"
     if isinstance(v, float):
         return format(v, spec)
-    return _e(v)
+    return escape(v)
 
 
 def image(png: bytes, alt: str, caption: str) -> str:
     data = base64.b64encode(png).decode("ascii")
-    return (f'<figure><img src="data:image/png;base64,{data}" alt="{_e(alt)}">'
-            f"<figcaption>{_e(caption)}</figcaption></figure>")
+    return (f'<figure><img src="data:image/png;base64,{data}" alt="{escape(alt)}">'
+            f"<figcaption>{escape(caption)}</figcaption></figure>")
 
 
 def stats_table(before: dict[str, Any], after: dict[str, Any], units: str) -> str:
@@ -45,13 +45,17 @@ def stats_table(before: dict[str, Any], after: dict[str, Any], units: str) -> st
             ("5th percentile", "p05_dz", ".3f"), ("25th percentile", "p25_dz", ".3f"),
             ("75th percentile", "p75_dz", ".3f"), ("95th percentile", "p95_dz", ".3f"),
             ("overlap (share of tie points)", "overlap_fraction", ".1%")]
-    out = [f"<table><tr><th>statistic ({_e(units)})</th><th>before the fine stage</th>"
+    out = [f"<table><tr><th>statistic ({escape(units)})</th><th>before the fine stage</th>"
            "<th>after</th></tr>"]
+    def cell(v: Any, spec: str) -> str:
+        if spec == "d":
+            return "-" if v is None else format(int(v), "d")
+        return _fmt(v, spec)
+
     for label, key, spec in rows:
         b, a = before.get(key), after.get(key)
-        fmt = (lambda v: "-" if v is None else format(int(v), "d")) if spec == "d" else (
-            lambda v: _fmt(v, spec))
-        out.append(f"<tr><td>{_e(label)}</td><td>{fmt(b)}</td><td>{fmt(a)}</td></tr>")
+        out.append(f"<tr><td>{escape(label)}</td><td>{cell(b, spec)}</td>"
+                   f"<td>{cell(a, spec)}</td></tr>")
     out.append("</table>")
     return "".join(out)
 
@@ -60,7 +64,7 @@ def parameters_table(params: dict[str, Any], precision: dict[str, Any]) -> str:
     out = ["<table><tr><th>parameter</th><th>value</th><th>1 sigma</th></tr>"]
     for key, spec in (("scale", ".8f"), ("omega_deg", ".5f"), ("phi_deg", ".5f"),
                       ("kappa_deg", ".5f")):
-        out.append(f"<tr><td>{_e(key)}</td><td>{_fmt(params.get(key), spec)}</td>"
+        out.append(f"<tr><td>{escape(key)}</td><td>{_fmt(params.get(key), spec)}</td>"
                    f"<td>{_fmt(precision.get(key), '.2e')}</td></tr>")
     t = params.get("translation") or [None] * 3
     s = precision.get("translation") or [None] * 3
@@ -69,8 +73,8 @@ def parameters_table(params: dict[str, Any], precision: dict[str, Any]) -> str:
                    f"<td>{_fmt(sd, '.4f')}</td></tr>")
     out.append("</table>")
     if precision.get("translation_at"):
-        out.append(f'<p class="muted">translation precision at the {_e(precision["translation_at"])}'
-                   "</p>")
+        at = escape(precision["translation_at"])
+        out.append(f'<p class="muted">translation precision at the {at}</p>')
     return "".join(out)
 
 
@@ -79,18 +83,19 @@ def page(*, data: dict[str, Any], sections: list[tuple[str, str]], title: str) -
     verdict = (f'<div class="verdict {"yes" if confident else "no"}">'
                f'{"Registered and confident" if confident else "Not confident"} '
                f'(confidence {float(data.get("confidence", 0.0)):.2f})</div>')
-    notes = "".join(f"<li>{_e(r)}</li>" for r in data.get("reasons", []))
-    warns = "".join(f"<li>{_e(w)}</li>" for w in data.get("warnings", []))
+    notes = "".join(f"<li>{escape(r)}</li>" for r in data.get("reasons", []))
+    warns = "".join(f"<li>{escape(w)}</li>" for w in data.get("warnings", []))
     inputs = data.get("inputs", {})
-    head = (f"<h1>{_e(title)}</h1><p class='muted'>tiereg {_e(data.get('tiereg_version', ''))}"
-            f" &middot; moving: {_e(inputs.get('moving', '?'))} &middot; reference: "
-            f"{_e(inputs.get('reference', '?'))} &middot; units: {_e(inputs.get('units', '?'))}"
-            f"</p>{verdict}")
+    version = escape(data.get("tiereg_version", ""))
+    head = (f"<h1>{escape(title)}</h1><p class='muted'>tiereg {version}"
+            f" &middot; moving: {escape(inputs.get('moving', '?'))} &middot; reference: "
+            f"{escape(inputs.get('reference', '?'))} &middot; units: "
+            f"{escape(inputs.get('units', '?'))}</p>{verdict}")
     if notes:
         head += f"<h2>Why not confident</h2><ul>{notes}</ul>"
     if warns:
         head += f"<h2>Warnings</h2><ul>{warns}</ul>"
-    body = "".join(f"<h2>{_e(name)}</h2>{content}" for name, content in sections)
+    body = "".join(f"<h2>{escape(name)}</h2>{content}" for name, content in sections)
     return (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
-            f"<title>{_e(title)}</title><style>{STYLE}</style></head><body>{head}{body}"
+            f"<title>{escape(title)}</title><style>{STYLE}</style></head><body>{head}{body}"
             "</body></html>\n")
