@@ -427,9 +427,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_report, "simulate": _cmd_simulate,
-            "apply": _cmd_apply,
-            "grid": _cmd_grid,
+COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_report,
+            "simulate": _cmd_simulate, "apply": _cmd_apply, "grid": _cmd_grid,
             "info": _cmd_info, "demo": _cmd_demo}
 
 

@@ -18,8 +18,8 @@ Weights are robust (iteratively reweighted): Huber for the first iterations, Tuk
 after, both on residuals scaled by their NMAD. The precision is ``sigma0^2 (A^T P A)^-1`` at
 convergence, or the delete-one-block jackknife's where that is larger (errors correlated in space:
 :func:`block_jackknife_sd`). A parameter the data cannot determine (horizontal shift on flat
-ground, heading on a featureless plane) is detected by its standard deviation, converted to a displacement at the edge
-of the block, and held at its starting value.
+ground, heading on a featureless plane) is detected by its standard deviation, converted to a
+displacement at the edge of the block, and held at its starting value.
 """
 
 from __future__ import annotations
