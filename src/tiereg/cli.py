@@ -109,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fine", choices=FINE_METHODS, default="auto", help="fine method")
     p.add_argument("--cell-size", type=float, metavar="M",
                    help="grid cell in reference units (default: from the tie-point density)")
+    p.add_argument("--level", choices=("auto", "cameras", "points", "none"), default="auto",
+                   help="vertical of a model in any orientation: from a COLMAP/Bundler model's "
+                   "cameras, from the points' dominant plane, or none (default auto)")
     p.add_argument("--initial", metavar="TRANSFORM",
                    help="a starting pose (RESULT.json or a 16-number matrix file); with "
                    "--coarse none the fine stage starts from it")
@@ -245,7 +248,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
         raise InputError(f"--report {args.report}: is a file; give a folder for the report")
     initial = _load_transform(args.initial) if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
-                      cell_size=args.cell_size, initial=initial,
+                      cell_size=args.cell_size, initial=initial, level=args.level,
                       moving_format=args.moving_format,
                       reference_format=args.reference_format,
                       progress=_progress_factory(args.quiet))
@@ -262,6 +265,10 @@ def _cmd_register(args: argparse.Namespace) -> int:
         report = write_report(result, args.report)
     if not args.quiet:
         print(_summary(result))
+        if result.levelling:
+            lv = result.levelling
+            print(f"levelled:    the model was tilted by {lv['tilt_deg']:.1f} deg (vertical from "
+                  f"its {lv['source']})")
         print(f"result:      {out}")
         if report is not None:
             print(_report_line(report))

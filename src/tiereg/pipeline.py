@@ -25,6 +25,7 @@ from .fine import FineResult, register_fine
 from .grid import cell_size_from_density
 from .io import PointSource, open_points
 from .io.base import ArraySource
+from .level import MIN_TILT_DEG, Vertical, levelling, vertical_from_cameras, vertical_from_points
 from .points import PointSet, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats, PointResiduals
@@ -85,6 +86,7 @@ class RegistrationResult:
     # the prepared reference (its base grid): for reports and control points, and to register
     # more blocks against the same lidar without reading it again
     reference: Reference | None = field(default=None, repr=False, compare=False)
+    levelling: dict[str, Any] | None = None  # how a model in any orientation was levelled
 
     def to_dict(self) -> dict[str, Any]:
         stages: list[dict[str, Any]] = []
@@ -117,6 +119,7 @@ class RegistrationResult:
             "quality_before": self.quality_before.to_dict(),
             "inputs": self.inputs.to_dict(),
             "T_initial": None if self.T_initial is None else self.T_initial.matrix.tolist(),
+            "levelling": self.levelling,
             "exports": {
                 "pdal_filters_transformation_matrix": self.T_ref_mov.to_pdal(),
                 "cloudcompare_matrix": self.T_ref_mov.to_cloudcompare().splitlines(),
@@ -168,6 +171,60 @@ def _path_args(points: object) -> tuple[str, ...]:
     return ()
 
 
+LEVEL_MODES = ("auto", "cameras", "points", "none")
+
+
+def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertical | None:
+    """The moving model's vertical when it must be levelled first, else ``None``."""
+    vertical = None
+    if mode in ("auto", "cameras") and source.info.format in ("colmap", "bundler"):
+        if source.info.format == "colmap":
+            from .io.colmap import read_colmap_model as read_model
+        else:
+            from .io.bundler import read_bundler_model as read_model
+        model = read_model(source.info.path)
+        vertical = vertical_from_cameras(model.camera_centres, model.viewing_directions, xyz)
+    if mode == "cameras" and vertical is None:
+        raise InputError(f"{source.info.path}: no cameras that look down in this model; use "
+                         "--level points or give a COLMAP/Bundler model with its images")
+    if vertical is not None:
+        return vertical if vertical.tilt_deg > 0.5 else None
+    if mode in ("auto", "points"):
+        vertical = vertical_from_points(xyz)
+        if mode == "points" or vertical.tilt_deg > MIN_TILT_DEG:
+            return vertical
+    return None
+
+
+def _register_levelled(vertical: Vertical, mov_src: PointSource, moving: object,
+                       reference: object, **options: Any) -> RegistrationResult:
+    """Level the model by ``vertical`` (both signs when it is unknown) and register it; the
+    answer whose registration is confident (then the more confident) wins."""
+    centre = mov_src.read().xyz.mean(axis=0)
+    ups = [np.asarray(vertical.up)] + ([] if vertical.sign_known else [-np.asarray(vertical.up)])
+    results: list[RegistrationResult] = []
+    for up in ups:
+        T_level = levelling(up, centre)
+        r = register(mov_src, results[0].reference if results else reference, initial=T_level,
+                     level="none", **options)
+        results.append(replace(r, T_initial=None))
+    best = max(results, key=lambda r: (r.confident, r.confidence))
+    reasons = list(best.reasons)
+    if vertical.ambiguous:
+        reasons.append("the vertical of the moving model is ambiguous (no dominant plane); give "
+                       "a model with its cameras, or a starting pose with --initial")
+    info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
+            "sign_known": vertical.sign_known, "flatness": vertical.flatness,
+            "tried": len(results), "confident_answers": sum(r.confident for r in results)}
+    if sum(r.confident for r in results) > 1:
+        reasons.append("both senses of the vertical register confidently: the answer is ambiguous")
+    confident = best.confident and not vertical.ambiguous and info["confident_answers"] <= 1
+    inputs = replace(best.inputs, moving_args=_path_args(moving))
+    return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
+                   confidence=best.confidence if confident else min(best.confidence, 0.49),
+                   levelling=info, inputs=inputs)
+
+
 def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Transform:
     """``T_ref_mov`` in file coordinates from one between the two local (centred) frames."""
     return Transform.from_translation(o_ref) @ T_local @ Transform.from_translation(-o_mov)
@@ -191,6 +248,7 @@ def register(
     fine: str = "auto",
     cell_size: float | None = None,
     initial: Transform | np.ndarray | None = None,
+    level: str = "auto",
     moving_format: str | None = None,
     reference_format: str | None = None,
     progress: ProgressFactory | None = None,
@@ -216,6 +274,11 @@ def register(
         A starting ``T_ref_mov`` (e.g. from GNSS/IMU or an earlier run). The moving points are
         placed by it first; the answer includes it. With ``coarse="none"`` the fine stage starts
         from it.
+    level
+        The moving model's vertical, for models in any orientation (:mod:`tiereg.level`):
+        ``"auto"`` (from the cameras of a COLMAP or Bundler model, else from the points when
+        their dominant plane is clearly tilted), ``"cameras"``, ``"points"`` or ``"none"``. Not
+        used with ``initial`` or ``coarse="none"``.
 
     Returns
     -------
@@ -232,9 +295,17 @@ def register(
             f"fine method {fine!r} is not available in tiereg {__version__}; "
             f"choose one of {', '.join(FINE_METHODS)}"
         )
+    if level not in LEVEL_MODES:
+        raise InputError(f"unknown levelling {level!r}; choose one of {', '.join(LEVEL_MODES)}")
     mov_src = _as_source(moving, moving_format, "moving")
     mov = mov_src.read()
     validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
+    if initial is None and coarse != "none" and level != "none":
+        vertical = find_vertical(mov_src, mov.xyz, mode=level)
+        if vertical is not None:
+            return _register_levelled(vertical, mov_src, moving, reference, coarse=coarse,
+                                      fine=fine, cell_size=cell_size,
+                                      reference_format=reference_format, progress=progress)
     if initial is not None and not isinstance(initial, Transform):
         initial = Transform(np.asarray(initial, dtype=np.float64))
     mov_xyz = mov.xyz if initial is None else initial.apply(mov.xyz)

@@ -7,9 +7,19 @@
 
 from __future__ import annotations
 
-from .scene import GEOREF, HiddenTransform, Scene, SceneSpec, make_scene, write_scene
+from .scene import (
+    GEOREF,
+    HiddenTransform,
+    OrientedModel,
+    Scene,
+    SceneSpec,
+    make_scene,
+    oriented_model,
+    write_scene,
+)
 from .sensors import ImageBlock, LidarSurvey
 from .world import KINDS, World, make_world
 
-__all__ = ["GEOREF", "KINDS", "HiddenTransform", "ImageBlock", "LidarSurvey", "Scene",
-           "SceneSpec", "World", "make_scene", "make_world", "write_scene"]
+__all__ = ["GEOREF", "KINDS", "HiddenTransform", "ImageBlock", "LidarSurvey", "OrientedModel",
+           "Scene", "SceneSpec", "World", "make_scene", "make_world", "oriented_model",
+           "write_scene"]

@@ -90,6 +90,7 @@ class Scene:
     hidden: HiddenTransform
     overlap: float  # measured share of the block inside the lidar footprint
     block_centre: tuple[float, float]
+    block_heading_deg: float = 0.0  # flight direction of the image block
 
     def truth_dict(self) -> dict:
         return {
@@ -170,7 +171,51 @@ def make_scene(spec: SceneSpec = SceneSpec(), *, world: World | None = None,
     T_mov_ref = hidden.T_mov_ref(centre_ref)
     moving = T_mov_ref.apply(ties.xyz + georef)
     return Scene(spec, lidar, ties, moving, T_mov_ref.inverse, hidden, overlap,
-                 (float(centre[0]), float(centre[1])))
+                 (float(centre[0]), float(centre[1])), heading)
+
+
+@dataclass(frozen=True, eq=False)
+class OrientedModel:
+    """A scene's tie points and images as an unreferenced model in any orientation."""
+
+    xyz: np.ndarray = field(repr=False)  # tie points, model frame
+    camera_centres: np.ndarray = field(repr=False)  # model frame
+    rotations_world_to_cam: np.ndarray = field(repr=False)  # (M, 3, 3): model -> camera
+    T_ref_mov: Transform  # the truth: model frame -> reference frame
+
+
+def oriented_model(scene: Scene, rotation_deg: tuple[float, float, float], *,
+                   flying_height_m: float = 800.0) -> OrientedModel:
+    """The scene's block as a structure-from-motion model turned by ``rotation_deg`` (omega, phi,
+    kappa about the block centre, after the scene's hidden similarity), with its images: nadir
+    cameras on the block's image grid (:class:`ImageBlock` footprint and overlaps) at
+    ``flying_height_m`` above the block's median height."""
+    block = scene.spec.block
+    half = block.side_m / 2
+    f = block.image_footprint_m
+    cu = np.arange(-half, half + f * (1 - block.forward_overlap), f * (1 - block.forward_overlap))
+    cv = np.arange(-half, half + f * (1 - block.side_overlap), f * (1 - block.side_overlap))
+    u, v = (a.ravel() for a in np.meshgrid(cu, cv))
+    h = np.radians(scene.block_heading_deg)
+    d, n = np.array([np.cos(h), np.sin(h)]), np.array([-np.sin(h), np.cos(h)])
+    georef = np.asarray(scene.spec.georef, dtype=np.float64)
+    ground = float(np.median(scene.tie_points.xyz[:, 2]))
+    centres_ref = np.column_stack([scene.block_centre[0] + u * d[0] + v * n[0],
+                                   scene.block_centre[1] + u * d[1] + v * n[1],
+                                   np.full(len(u), ground + flying_height_m)]) + georef
+    # nadir views: camera x along the flight, optical axis (camera z) straight down
+    R_cam_ref = np.array([[np.cos(h), np.sin(h), 0.0], [np.sin(h), -np.cos(h), 0.0],
+                          [0.0, 0.0, -1.0]])
+    T_mov_ref = scene.T_ref_mov.inverse
+    c = scene.moving.mean(axis=0)
+    om, ph, ka = np.radians(rotation_deg)
+    turn = (Transform.from_translation(c) @ Transform.from_parameters(omega=om, phi=ph, kappa=ka)
+            @ Transform.from_translation(-c))
+    T_model_ref = turn @ T_mov_ref
+    R = T_model_ref.matrix[:3, :3] / T_model_ref.parameters().scale
+    rotations = np.repeat((R_cam_ref @ R.T)[None], len(u), axis=0)
+    return OrientedModel(turn.apply(scene.moving), T_model_ref.apply(centres_ref), rotations,
+                         T_model_ref.inverse)
 
 
 def write_scene(scene: Scene, out_dir: str | Path, *, crs_epsg: int | None = 32632) -> Path:

@@ -1,0 +1,109 @@
+"""Levelling: the vertical of a moving model in any orientation, before the level problem.
+
+A structure-from-motion model without georeferencing (COLMAP, Bundler) comes in any orientation.
+The coarse stage solves the *level* problem (heading, scale, shift, height offset, small tilts),
+so the model is first turned so that its vertical points up:
+
+- from the cameras, when the model has them: aerial images look down, so the mean optical axis
+  is the model's down direction; the cameras lie above the points, which fixes its sign;
+- otherwise from the points: the normal of their dominant plane (robust PCA: the smallest
+  principal axis after trimming the points farthest from the plane). Its sign is unknown: both
+  are tried, and the one the reference confirms wins. A block about as thick as it is wide has no
+  dominant plane: the vertical is then ambiguous and the result says so.
+
+Level data (tie points of an aerial triangulation) are not touched: points-only levelling acts
+only when the dominant plane is tilted by more than :data:`MIN_TILT_DEG` (terrain slopes are a
+few degrees; an unreferenced model is off by tens).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .transform import Transform
+
+MIN_TILT_DEG = 15.0  # points-only: a dominant plane tilted less than this is taken as level
+MAX_FLATNESS = 0.25  # smallest / middle principal spread above this: no dominant plane
+TRIM = 0.8  # the robust PCA keeps this share of the points nearest to the plane
+
+
+@dataclass(frozen=True)
+class Vertical:
+    """The up direction of a moving model (its own frame, unit vector) and where it came from."""
+
+    up: tuple[float, float, float]
+    source: str  # "cameras" or "points"
+    sign_known: bool  # False: up and -up are both possible (points only)
+    flatness: float  # smallest over middle principal spread of the points (0: a plane)
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle between the model's up and its z axis."""
+        return math.degrees(math.acos(float(np.clip(abs(self.up[2]), 0.0, 1.0))))
+
+    @property
+    def ambiguous(self) -> bool:
+        return self.flatness > MAX_FLATNESS
+
+
+def _principal(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    d = points - points.mean(axis=0)
+    evals, evecs = np.linalg.eigh(d.T @ d / max(len(points), 1))
+    return evals, evecs
+
+
+def vertical_from_points(points: np.ndarray) -> Vertical:
+    """The dominant plane's normal (robust PCA; the sign is unknown)."""
+    p = np.asarray(points, dtype=np.float64)
+    evals, evecs = _principal(p)
+    for _ in range(3):  # trim the points farthest from the plane (trees, walls, blunders)
+        n = evecs[:, 0]
+        dist = np.abs((p - p.mean(axis=0)) @ n)
+        keep = dist <= np.quantile(dist, TRIM)
+        evals, evecs = _principal(p[keep])
+    n = evecs[:, 0]
+    n = n if n[2] >= 0 else -n
+    spread = np.sqrt(np.maximum(_principal(p)[0], 0.0))
+    return Vertical(tuple(float(v) for v in n), "points", False,
+                    float(spread[0] / max(spread[1], 1e-300)))
+
+
+def vertical_from_cameras(centres: np.ndarray, directions: np.ndarray,
+                          points: np.ndarray) -> Vertical | None:
+    """Up from the cameras' mean optical axis (``None`` if they do not look one way)."""
+    d = np.asarray(directions, dtype=np.float64)
+    if len(d) < 2:
+        return None
+    mean = d.mean(axis=0)
+    if np.linalg.norm(mean) < 0.5:  # oblique views all around: no common down direction
+        return None
+    up = -mean / np.linalg.norm(mean)
+    above = (np.asarray(centres, dtype=np.float64) - np.asarray(points).mean(axis=0)) @ up
+    if np.median(above) < 0:  # the cameras must be above the ground they see
+        return None
+    spread = np.sqrt(np.maximum(_principal(np.asarray(points, dtype=np.float64))[0], 0.0))
+    return Vertical(tuple(float(v) for v in up), "cameras", True,
+                    float(spread[0] / max(spread[1], 1e-300)))
+
+
+def levelling(up: tuple[float, float, float] | np.ndarray, centre: np.ndarray) -> Transform:
+    """The rotation about ``centre`` that turns ``up`` onto +z (Rodrigues' formula; the smallest
+    such rotation, so heading is left for the coarse stage)."""
+    u = np.asarray(up, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(u, z)
+    s, c = float(np.linalg.norm(axis)), float(u @ z)
+    if s < 1e-12:
+        R = np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        k = axis / s
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        R = np.eye(3) + s * K + (1 - c) * (K @ K)
+    M = np.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = centre - R @ centre
+    return Transform(M)

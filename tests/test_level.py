@@ -1,0 +1,98 @@
+"""Models in any orientation: the vertical from cameras or points, then the level problem."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tiereg import register
+from tiereg.io.colmap import write_colmap_model_txt, write_colmap_points_txt
+from tiereg.level import levelling, vertical_from_cameras, vertical_from_points
+from tiereg.simulate import (
+    HiddenTransform,
+    ImageBlock,
+    LidarSurvey,
+    SceneSpec,
+    make_scene,
+    oriented_model,
+)
+
+
+def _unit(v):
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def test_levelling_turns_up_onto_z_about_the_centre():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        up, c = _unit(rng.normal(size=3)), rng.normal(0, 1e5, 3)
+        T = levelling(up, c)
+        R = T.matrix[:3, :3]
+        np.testing.assert_allclose(R @ up, [0, 0, 1], atol=1e-12)
+        np.testing.assert_allclose(T.apply(c[None])[0], c, atol=1e-6)
+        assert np.isclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(levelling([0, 0, -1], np.zeros(3)).matrix[:3, :3] @ [0, 0, -1],
+                               [0, 0, 1])
+
+
+def test_vertical_from_points_and_cameras():
+    rng = np.random.default_rng(1)
+    # a rolling block 2 km wide, 30 m of relief, tilted so that its up is n
+    xy = rng.uniform(-1000, 1000, (3000, 2))
+    z = 15 * np.sin(xy[:, 0] / 300) + rng.normal(0, 0.3, 3000)
+    n = _unit([0.5, -0.3, 0.8])
+    R = levelling(n, np.zeros(3)).matrix[:3, :3].T  # +z -> n
+    pts = np.column_stack([xy, z]) @ R.T
+    v = vertical_from_points(pts)
+    assert not v.sign_known and not v.ambiguous
+    # the dominant plane is the terrain's mean plane: this one leans by about a degree
+    assert np.degrees(np.arccos(abs(np.dot(v.up, n)))) < 2.0
+    # nadir cameras 800 m above, looking along -n
+    centres = (np.column_stack([rng.uniform(-1000, 1000, (40, 2)), np.full(40, 800.0)]) @ R.T)
+    dirs = np.tile(-n, (40, 1)) + rng.normal(0, 0.01, (40, 3))
+    vc = vertical_from_cameras(centres, dirs / np.linalg.norm(dirs, axis=1)[:, None], pts)
+    assert vc is not None and vc.sign_known
+    assert np.degrees(np.arccos(np.dot(vc.up, n))) < 1.0
+    # a ball of points has no dominant plane
+    assert vertical_from_points(rng.normal(size=(2000, 3))).ambiguous
+
+
+@pytest.fixture(scope="module")
+def suburb():
+    spec = SceneSpec(kind="suburban", seed=7, world_size_m=2500.0, lidar_size_m=2000.0,
+                     block=ImageBlock(side_m=1400.0), survey=LidarSurvey(density_per_m2=1.0),
+                     hidden=HiddenTransform(heading_deg=0.0, scale=2.0), block_heading_deg=20.0)
+    return make_scene(spec)
+
+
+def _rms(T_est, T_true, xyz):
+    d = T_est.apply(xyz) - T_true.apply(xyz)
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+
+
+@pytest.mark.parametrize("cameras", [True, False])
+def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
+    model = oriented_model(suburb, (55.0, -30.0, 140.0))
+    folder = tmp_path / "sparse"
+    if cameras:
+        write_colmap_model_txt(folder, model.xyz, model.camera_centres,
+                               model.rotations_world_to_cam)
+    else:
+        folder.mkdir()
+        write_colmap_points_txt(folder / "points3D.txt", model.xyz)
+    result = register(folder, suburb.lidar.xyz)
+    assert result.confident
+    assert result.levelling["source"] == ("cameras" if cameras else "points")
+    assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 0.5  # metres, after fine
+    data = json.loads(result.to_json())
+    assert data["levelling"]["tilt_deg"] > 40
+    assert data["T_initial"] is None
+
+
+def test_level_data_are_not_levelled(suburb):
+    # aerial-triangulation tie points are level already: nothing is turned
+    result = register(suburb.moving, suburb.lidar.xyz, fine="none")
+    assert result.levelling is None and result.confident
