@@ -34,6 +34,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/coarse.py
 	$(BIN)/python benchmarks/fine.py
 	$(BIN)/python benchmarks/control.py
+	$(BIN)/python benchmarks/orientation.py
 
 bench-quick: install
 	$(BIN)/python benchmarks/coarse.py --quick

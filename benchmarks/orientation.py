@@ -1,0 +1,175 @@
+"""Models in any orientation: COLMAP models of simulated blocks turned by a random 3-D rotation.
+
+Each case is a simulated block (every world kind) made into an unreferenced structure-from-motion
+model: the hidden similarity (any heading, scale 0.25-4, any shift) and then a random rotation in
+3-D (uniform over all orientations) about the block centre. Half the cases give the COLMAP model
+with its cameras (nadir images on the block's image grid), half the points only. Negative cases:
+tie points from a world the lidar never saw. tiereg registers with its defaults (levelling auto)
+and the coarse stage only, as in the coarse benchmark.
+
+Correct: the rotation within 2 deg (the angle of R_est R_true^T: heading and tilt), the scale
+within 2 %, the block centre within one coarse cell. Confidently wrong: confident and not correct.
+
+    python benchmarks/orientation.py      # -> benchmarks/results/orientation.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+WORK = HERE / "work" / "orientation"
+
+from tiereg import register  # noqa: E402
+from tiereg.grid import cell_size_from_density  # noqa: E402
+from tiereg.io import open_points  # noqa: E402
+from tiereg.io.colmap import write_colmap_model_txt, write_colmap_points_txt  # noqa: E402
+from tiereg.reference import prepare_reference  # noqa: E402
+from tiereg.simulate import (  # noqa: E402
+    KINDS,
+    HiddenTransform,
+    ImageBlock,
+    LidarSurvey,
+    SceneSpec,
+    make_scene,
+    make_world,
+    oriented_model,
+    write_scene,
+)
+
+SCENE = {"world_size_m": 4000.0, "lidar_size_m": 3000.0, "block": ImageBlock(side_m=2200.0),
+         "survey": LidarSurvey(density_per_m2=1.0)}
+ROTATION_TOL_DEG, SCALE_TOL = 2.0, 0.02
+
+
+def random_rotation_deg(rng: np.random.Generator) -> tuple[float, float, float]:
+    """(omega, phi, kappa) of a rotation uniform over SO(3) (a uniform unit quaternion)."""
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    # R = Rz(kappa) Ry(phi) Rx(omega)
+    phi = np.arcsin(-np.clip(R[2, 0], -1, 1))
+    omega = np.arctan2(R[2, 1], R[2, 2])
+    kappa = np.arctan2(R[1, 0], R[0, 0])
+    return tuple(float(np.degrees(a)) for a in (omega, phi, kappa))
+
+
+def rotation_error_deg(T_est, T_true) -> float:
+    R = T_est.matrix[:3, :3] / T_est.parameters().scale
+    Rt = T_true.matrix[:3, :3] / T_true.parameters().scale
+    c = (np.trace(R @ Rt.T) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", type=int, default=8, help="cases per scene kind")
+    args = parser.parse_args()
+    WORK.mkdir(parents=True, exist_ok=True)
+    rows = []
+    t_all = time.perf_counter()
+    for index, kind in enumerate(KINDS):
+        rng = np.random.default_rng([2028, index])
+        spec = SceneSpec(kind=kind, seed=60 + index, **SCENE)
+        world = make_world(kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=spec.seed)
+        base = make_scene(spec, world=world)
+        laz = WORK / f"{kind}-{spec.seed}"
+        if not (laz / "reference.laz").exists():
+            write_scene(base, laz)
+        cell = cell_size_from_density(base.tie_points.true_xyz)
+        ref = prepare_reference(open_points(laz / "reference.laz"), base_cell=cell / 8)
+        for case in range(args.cases + 1):
+            negative = case == args.cases
+            hidden = replace(HiddenTransform.random(rng), tilt_deg=(0.0, 0.0))
+            cs = replace(spec, hidden=hidden, overlap=float(rng.uniform(0.5, 1.0)),
+                         tie_world_seed=spec.seed + 1000 if negative else None)
+            scene = make_scene(cs, world=world, lidar=base.lidar)
+            model = oriented_model(scene, random_rotation_deg(rng))
+            cameras = case % 2 == 0 and not negative
+            with tempfile.TemporaryDirectory(dir=WORK) as tmp:
+                folder = Path(tmp) / "sparse"
+                if cameras:
+                    write_colmap_model_txt(folder, model.xyz, model.camera_centres,
+                                           model.rotations_world_to_cam)
+                else:
+                    folder.mkdir()
+                    write_colmap_points_txt(folder / "points3D.txt", model.xyz)
+                t0 = time.perf_counter()
+                result = register(folder, ref, fine="none")
+                seconds = time.perf_counter() - t0
+            T_true = model.T_ref_mov
+            rot = rotation_error_deg(result.T_ref_mov, T_true)
+            ds = result.T_ref_mov.parameters().scale / T_true.parameters().scale - 1
+            centre = model.xyz.mean(axis=0, keepdims=True)
+            dxy = (result.T_ref_mov.apply(centre) - T_true.apply(centre))[0, :2]
+            cells = float(np.hypot(*dxy) / cell)
+            correct = (not result.confident) if negative else (
+                rot <= ROTATION_TOL_DEG and abs(ds) <= SCALE_TOL and cells <= 1.0)
+            lv = result.levelling or {}
+            rows.append({"kind": kind, "case": case, "negative": negative, "cameras": cameras,
+                         "scale": hidden.scale, "correct": correct,
+                         "confident": result.confident, "rotation_err_deg": rot,
+                         "scale_err": ds, "cells": cells, "seconds": seconds,
+                         "tilt_deg": lv.get("tilt_deg"), "level_source": lv.get("source", "-"),
+                         "note": "; ".join(result.reasons)[:90]})
+            r = rows[-1]
+            print(f"{kind}-{case} {'cams' if cameras else 'points'}: correct {correct}, "
+                  f"confident {result.confident}, rotation {rot:.2f} deg, {seconds:.1f} s",
+                  file=sys.stderr)
+    write(rows, time.perf_counter() - t_all)
+
+
+def write(rows: list[dict], seconds: float) -> None:
+    pos = [r for r in rows if not r["negative"]]
+    neg = [r for r in rows if r["negative"]]
+    cw = sum(r["confident"] and not r["correct"] for r in rows)
+
+    def line(sel, label):
+        n, ok = len(sel), sum(r["correct"] for r in sel)
+        return (f"| {label} | {ok}/{n} | {ok / max(n, 1):.0%} | "
+                f"{sum(r['confident'] and not r['correct'] for r in sel)} | "
+                f"{np.median([r['seconds'] for r in sel]):.1f} |")
+
+    lines = ["# Models in any orientation", "",
+             f"- date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}"
+             f"; total run time {seconds / 60:.1f} min",
+             "- cases: simulated blocks (1 lidar point per m^2, 350 tie points per km^2) as COLMAP "
+             "models: hidden similarity (any heading, scale 0.25-4) then a random 3-D rotation "
+             "(uniform); even cases with cameras, odd ones points only; one negative case per "
+             "kind (tie points from another world)",
+             f"- correct: rotation within {ROTATION_TOL_DEG:g} deg, scale within "
+             f"{SCALE_TOL:.0%}, block centre within one coarse cell; coarse stage only",
+             f"- **confidently wrong: {cw}**; negatives rejected "
+             f"{sum(r['correct'] for r in neg)}/{len(neg)}", "",
+             "| cases | correct | rate | confidently wrong | median s |", "|---|---:|---:|---:|---:|",
+             line(pos, "all"), line([r for r in pos if r["cameras"]], "with cameras"),
+             line([r for r in pos if not r["cameras"]], "points only")]
+    for k in dict.fromkeys(r["kind"] for r in pos):
+        lines.append(line([r for r in pos if r["kind"] == k], k))
+    lines += ["", "| kind | case | cameras | scale | correct | confident | rotation err (deg) | "
+              "scale err (%) | cells | tilt (deg) | s | note |",
+              "|---|---:|---|---:|---|---|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        tilt = "-" if r["tilt_deg"] is None else f"{r['tilt_deg']:.0f}"
+        lines.append(f"| {r['kind']}{' (negative)' if r['negative'] else ''} | {r['case']} | "
+                     f"{'yes' if r['cameras'] else 'no'} | {r['scale']:.2f} | {r['correct']} | "
+                     f"{r['confident']} | {r['rotation_err_deg']:.2f} | "
+                     f"{100 * r['scale_err']:.2f} | {r['cells']:.2f} | {tilt} | "
+                     f"{r['seconds']:.1f} | {r['note']} |")
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "orientation.md").write_text("\n".join(lines) + "\n")
+    print(HERE / "results" / "orientation.md")
+
+
+if __name__ == "__main__":
+    main()
