@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import datetime
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,22 +20,11 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from fine import CASES_PER_KIND, SCENE, WORK, perturbed  # noqa: E402
+from fine import CASES_PER_KIND, kind_setup, perturbed  # noqa: E402
 
 from tiereg import register  # noqa: E402
 from tiereg.control import select_control_points  # noqa: E402
-from tiereg.grid import cell_size_from_density  # noqa: E402
-from tiereg.io import open_points  # noqa: E402
-from tiereg.reference import prepare_reference  # noqa: E402
-from tiereg.simulate import (  # noqa: E402
-    GEOREF,
-    KINDS,
-    HiddenTransform,
-    SceneSpec,
-    make_scene,
-    make_world,
-    write_scene,
-)
+from tiereg.simulate import GEOREF, KINDS, make_scene  # noqa: E402
 
 TOLERANCE_M, TARGET = 0.10, 0.95
 
@@ -44,20 +32,10 @@ TOLERANCE_M, TARGET = 0.10, 0.95
 def main() -> None:
     rows, errors = [], []
     for index, kind in enumerate(KINDS):
-        rng = np.random.default_rng([2027, index])  # the fine benchmark's cases
-        spec = SceneSpec(kind=kind, seed=40 + index, **SCENE)
-        world = make_world(kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=spec.seed)
-        base = make_scene(spec, world=world)
-        laz = WORK / f"{kind}-{spec.seed}"
-        if not (laz / "reference.laz").exists():
-            write_scene(base, laz)
-        ref = prepare_reference(open_points(laz / "reference.laz"),
-                                base_cell=cell_size_from_density(base.tie_points.true_xyz) / 8)
-        for case in range(CASES_PER_KIND):
-            hidden = HiddenTransform.random(rng)
-            cs = replace(spec, hidden=hidden, overlap=1.0,
-                         block_heading_deg=float(rng.uniform(0, 360)))
-            scene = make_scene(cs, world=world, lidar=base.lidar)
+        k = kind_setup(index, kind)  # the fine benchmark's scenes and cases
+        world, ref = k.world, k.ref
+        for case, cs in k.cases(CASES_PER_KIND):
+            scene = make_scene(cs, world=world, lidar=k.base.lidar)
             result = register(scene.moving, ref)
             start = "coarse"
             if not result.confident:

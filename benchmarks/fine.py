@@ -174,27 +174,45 @@ def run_case(kind: str, case: int, spec: SceneSpec, world, lidar, ref,
     return out
 
 
-def run_kind(job) -> tuple[list[Outcome], dict]:
-    index, kind, quick, peers = job
-    rng = np.random.default_rng([2027, index])
+@dataclass
+class KindSetup:
+    """One scene kind of the benchmark: its world, lidar (written once), prepared reference."""
+
+    spec: SceneSpec
+    world: object
+    base: object  # the scene whose lidar every case reuses
+    ref: object
+    cell: float
+    rng: np.random.Generator  # draws the cases, in order
+
+    def cases(self, n: int):
+        """The kind's cases: another flight direction each (other tie points, same lidar)."""
+        for case in range(n):
+            hidden = HiddenTransform.random(self.rng)
+            yield case, replace(self.spec, hidden=hidden, overlap=1.0,
+                                block_heading_deg=float(self.rng.uniform(0, 360)))
+
+
+def kind_setup(index: int, kind: str) -> KindSetup:
     spec = SceneSpec(kind=kind, seed=40 + index, **SCENE)
     world = make_world(kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=spec.seed)
     base = make_scene(spec, world=world)
     laz = WORK / f"{kind}-{spec.seed}"
     if not (laz / "reference.laz").exists():
         write_scene(base, laz)
-    source = open_points(laz / "reference.laz")
     cell = cell_size_from_density(base.tie_points.true_xyz)
-    ref = prepare_reference(source, base_cell=cell / 8)
+    ref = prepare_reference(open_points(laz / "reference.laz"), base_cell=cell / 8)
+    return KindSetup(spec, world, base, ref, cell, np.random.default_rng([2027, index]))
+
+
+def run_kind(job) -> tuple[list[Outcome], dict]:
+    index, kind, quick, peers = job
+    k = kind_setup(index, kind)
     outcomes = []
-    for case in range(1 if quick else CASES_PER_KIND):
-        hidden = HiddenTransform.random(rng)
-        # another flight direction: another block, other tie points over the same lidar
-        case_spec = replace(spec, hidden=hidden, overlap=1.0,
-                            block_heading_deg=float(rng.uniform(0, 360)))
-        outcomes += run_case(kind, case, case_spec, world, base.lidar, ref, peers)
-    meta = {"kind": kind, "tie_points": len(base.moving), "lidar_points": source.info.count,
-            "cell_m": cell}
+    for case, case_spec in k.cases(1 if quick else CASES_PER_KIND):
+        outcomes += run_case(kind, case, case_spec, k.world, k.base.lidar, k.ref, peers)
+    meta = {"kind": kind, "tie_points": len(k.base.moving),
+            "lidar_points": k.ref.source.info.count, "cell_m": k.cell}
     return outcomes, meta
 
 

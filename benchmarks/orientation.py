@@ -31,7 +31,6 @@ WORK = HERE / "work" / "orientation"
 from tiereg import register  # noqa: E402
 from tiereg.grid import cell_size_from_density  # noqa: E402
 from tiereg.io import open_points  # noqa: E402
-from tiereg.io.colmap import write_colmap_model_txt, write_colmap_points_txt  # noqa: E402
 from tiereg.reference import prepare_reference  # noqa: E402
 from tiereg.simulate import (  # noqa: E402
     KINDS,
@@ -97,13 +96,7 @@ def main() -> None:
             model = oriented_model(scene, random_rotation_deg(rng))
             cameras = case % 2 == 0 and not negative
             with tempfile.TemporaryDirectory(dir=WORK) as tmp:
-                folder = Path(tmp) / "sparse"
-                if cameras:
-                    write_colmap_model_txt(folder, model.xyz, model.camera_centres,
-                                           model.rotations_world_to_cam)
-                else:
-                    folder.mkdir()
-                    write_colmap_points_txt(folder / "points3D.txt", model.xyz)
+                folder = model.write_colmap(Path(tmp) / "sparse", cameras=cameras)
                 t0 = time.perf_counter()
                 result = register(folder, ref, fine="none")
                 seconds = time.perf_counter() - t0

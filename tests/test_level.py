@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from tiereg import register
-from tiereg.io.colmap import write_colmap_model_txt, write_colmap_points_txt
 from tiereg.level import levelling, vertical_from_cameras, vertical_from_points
 from tiereg.simulate import (
     HiddenTransform,
@@ -76,13 +75,7 @@ def _rms(T_est, T_true, xyz):
 @pytest.mark.parametrize("cameras", [True, False])
 def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     model = oriented_model(suburb, (55.0, -30.0, 140.0))
-    folder = tmp_path / "sparse"
-    if cameras:
-        write_colmap_model_txt(folder, model.xyz, model.camera_centres,
-                               model.rotations_world_to_cam)
-    else:
-        folder.mkdir()
-        write_colmap_points_txt(folder / "points3D.txt", model.xyz)
+    folder = model.write_colmap(tmp_path / "sparse", cameras=cameras)
     result = register(folder, suburb.lidar.xyz)
     assert result.confident
     assert result.levelling["source"] == ("cameras" if cameras else "points")

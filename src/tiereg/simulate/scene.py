@@ -183,6 +183,19 @@ class OrientedModel:
     rotations_world_to_cam: np.ndarray = field(repr=False)  # (M, 3, 3): model -> camera
     T_ref_mov: Transform  # the truth: model frame -> reference frame
 
+    def write_colmap(self, folder: str | Path, *, cameras: bool = True) -> Path:
+        """A COLMAP text model in ``folder``: ``points3D.txt``, and with ``cameras`` the images
+        (``images.txt``, ``cameras.txt``) too."""
+        from ..io.colmap import write_colmap_model_txt, write_colmap_points_txt
+
+        out = Path(folder)
+        if cameras:
+            write_colmap_model_txt(out, self.xyz, self.camera_centres, self.rotations_world_to_cam)
+        else:
+            out.mkdir(parents=True, exist_ok=True)
+            write_colmap_points_txt(out / "points3D.txt", self.xyz)
+        return out
+
 
 def oriented_model(scene: Scene, rotation_deg: tuple[float, float, float], *,
                    flying_height_m: float = 800.0) -> OrientedModel:
