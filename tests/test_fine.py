@@ -186,6 +186,10 @@ def test_a_fine_answer_that_moves_the_block_too_far_or_fits_worse_is_refused():
         kappa=np.radians(3.0))})
     assert "farther from the lidar surface" in _refusal(worse, p, observe, start_spread,
                                                         max_move=1e6)
+    # a fit stopped at its iteration limit is no answer
+    stopped = solve_helmert(near, observe, hold_displacement=5.0, max_iterations=2)
+    assert "did not converge" in _refusal(stopped, near, observe, start_spread=1.0,
+                                          max_move=10.0)
 
 
 def test_lsm_finds_the_canopy_surface_where_the_grid_mean_is_metres_off():

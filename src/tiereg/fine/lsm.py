@@ -186,7 +186,8 @@ def register_fine(
             again = solve_helmert(q, near, hold_displacement=hold)
             if again.n_observed >= 10:
                 fit = replace(again, T=again.T @ fit.T)
-    refused = _refusal(fit, placed, observe, start_spread, MAX_MOVE_CELLS * cell_size)
+    refused = _refusal(fit, placed, observe, start_spread, MAX_MOVE_CELLS * cell_size,
+                       require_convergence=method == "lsm")
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused)
 
 
@@ -204,10 +205,14 @@ def _spread(observe: Observer, q: np.ndarray) -> float:
 
 
 def _refusal(fit: HelmertFit, placed: np.ndarray, observe: Observer, start_spread: float,
-             max_move: float) -> str:
-    """Why the fine answer must not replace the coarse pose ("" when it may)."""
+             max_move: float, *, require_convergence: bool = True) -> str:
+    """Why the fine answer must not replace the coarse pose ("" when it may). The classic ICP
+    variants, run for comparison, often end at the iteration limit still creeping along a
+    surface; they are judged by where they end, without ``require_convergence``."""
     if fit.n_observed < 10:
         return "too few tie points have a lidar surface near them"
+    if require_convergence and not fit.converged:
+        return f"it did not converge in {fit.iterations} iterations"
     moved = float(np.sqrt(np.mean(np.sum((fit.T.apply(placed) - placed) ** 2, axis=1))))
     if not math.isfinite(moved) or moved > max_move:
         return (f"it would move the block by {moved:.3g} (RMS), more than the coarse stage's "
