@@ -14,7 +14,6 @@ import numpy as np
 from scipy import fft, ndimage
 
 _EPS = 100 * np.finfo(np.float64).eps
-FFT_WORKERS = -1  # scipy.fft threads: all cores
 
 
 def full_shape(ref_shape: tuple[int, int], mov_shape: tuple[int, int]) -> tuple[int, int]:
@@ -37,19 +36,16 @@ class _Correlator:
         self.fft_shape = tuple(fft.next_fast_len(n, real=True) for n in self.full)
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
-        """Spectra of one image, or of a stack of images (leading axis), zero-padded."""
-        return fft.rfft2(image, s=self.fft_shape, axes=(-2, -1), workers=FFT_WORKERS)
+        return fft.rfft2(image, s=self.fft_shape)
 
     def correlate(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
-        """Full-mode correlations of spectra (or of stacks of them, in one transform)."""
-        circ = fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape, axes=(-2, -1),
-                          workers=FFT_WORKERS)
+        circ = fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape)
         return self.to_full(circ)
 
     def to_full(self, circ: np.ndarray) -> np.ndarray:
         hm, wm = self.mov_shape
-        rolled = np.roll(circ, (hm - 1, wm - 1), axis=(-2, -1))
-        return rolled[..., : self.full[0], : self.full[1]]
+        rolled = np.roll(circ, (hm - 1, wm - 1), axis=(0, 1))
+        return rolled[: self.full[0], : self.full[1]]
 
 
 def cross_power_correlation(
@@ -76,7 +72,7 @@ def cross_power_correlation(
         cross /= np.maximum(np.abs(fm), _EPS)
     elif normalization != "none":
         raise ValueError(f"unknown normalization {normalization!r}")
-    return corr.to_full(fft.irfft2(cross, s=corr.fft_shape, workers=FFT_WORKERS))
+    return corr.to_full(fft.irfft2(cross, s=corr.fft_shape))
 
 
 class MaskedReference:
@@ -120,12 +116,13 @@ def masked_ncc(
     fm = np.where(mm > 0, moving, 0.0)
     corr = _Correlator(ref.shape, fm.shape)
     s_fr, s_mr, s_fr2 = ref.spectra(corr)
-    s_fm, s_mm, s_fm2 = corr.spectrum(np.stack([fm, mm, fm * fm]))
-    # the six correlations in one batched transform
-    n, sum_r, sum_m, sum_rm, sum_rr, sum_mm = corr.correlate(
-        np.stack([s_mr, s_fr, s_mr, s_fr, s_fr2, s_mr]),
-        np.stack([s_mm, s_mm, s_fm, s_fm, s_mm, s_fm2]))
-    n = np.round(n)
+    s_fm, s_mm = corr.spectrum(fm), corr.spectrum(mm)
+    n = np.round(corr.correlate(s_mr, s_mm))
+    sum_r = corr.correlate(s_fr, s_mm)
+    sum_m = corr.correlate(s_mr, s_fm)
+    sum_rm = corr.correlate(s_fr, s_fm)
+    sum_rr = corr.correlate(s_fr2, s_mm)
+    sum_mm = corr.correlate(s_mr, corr.spectrum(fm * fm))
     with np.errstate(invalid="ignore", divide="ignore"):
         n_safe = np.maximum(n, 1.0)
         num = sum_rm - sum_r * sum_m / n_safe
