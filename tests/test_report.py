@@ -30,11 +30,11 @@ def report(demo_result, tmp_path_factory):
 def test_report_writes_maps_tables_and_a_self_contained_page(report, demo_result):
     out = report.directory
     for name in ("report.html", "dz_before.png", "dz_after.png", "residual_histogram.png",
-                 "coarse_candidates.png", "dz_before.tif", "dz_after.tif", "residuals.csv",
+                 "coarse_candidates.png", "coarse_correlation.png", "dz_before.tif", "dz_after.tif", "residuals.csv",
                  "control_points.csv", "control_points.txt", "control_points_colmap.txt"):
         assert (out / name).stat().st_size > 0, name
     page = (out / "report.html").read_text()
-    assert page.count("data:image/png;base64,") == 4  # maps, histogram, coarse evidence
+    assert page.count("data:image/png;base64,") == 5  # maps, histogram, coarse evidence
     assert "http://" not in page and "https://" not in page and "<script" not in page
     assert "Registered and confident" in page
     # per-point residuals: one row per tie point, the same numbers as the result's statistics
@@ -43,6 +43,12 @@ def test_report_writes_maps_tables_and_a_self_contained_page(report, demo_result
     assert len(rows) == 1 + len(demo_result.residuals.xyz)
     dz = np.array([float(r.split(",")[4]) for r in rows[1:] if r.split(",")[4]])
     assert np.median(dz) == pytest.approx(demo_result.quality.median_dz, abs=1e-4)
+    # the correlation surface peaks within a cell of the answer
+    from tiereg.report import WINDOW_CELLS, _correlation_window
+
+    w = _correlation_window(demo_result)
+    peak = np.array(np.unravel_index(int(np.argmax(w)), w.shape)) - WINDOW_CELLS
+    assert np.abs(peak).max() <= 1
     # the blunders the demo planted (2 %, tens of feet) are flagged
     assert 0.01 < demo_result.residuals.blunder.mean() < 0.06
 

@@ -80,7 +80,11 @@ class Scorer:
             self._refs[key] = (grid, MaskedReference(p.image, p.support), bandpass)
         return self._refs[key]
 
-    def score(self, kappa: float, sigma: float) -> Hypothesis | None:
+    def surface(self, kappa: float, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                          GridSpec, Grid] | None:
+        """The score (NCC x sqrt(overlap), -1 where not valid), NCC and overlap at every shift of
+        one hypothesis (full-mode surfaces, :mod:`tiereg.coarse.correlation`), with the tie
+        points' grid spec and the reference grid (``None``: the hypothesis cannot be scored)."""
         if self.level * self.tie_cell * sigma < self.ref_extent / MAX_REFERENCE_CELLS:
             return None
         grid, mref, bandpass = self.reference(sigma)
@@ -102,9 +106,17 @@ class Scorer:
         overlap = n / float(mov.support.sum())
         valid = (overlap >= MIN_OVERLAP) & (n >= MIN_SUPPORT_CELLS)
         score = np.where(valid, ncc * np.sqrt(np.minimum(overlap, 1.0)), -1.0)
+        return score, ncc, overlap, spec, grid
+
+    def score(self, kappa: float, sigma: float) -> Hypothesis | None:
+        found = self.surface(kappa, sigma)
+        if found is None:
+            return None
+        score, ncc, overlap, spec, grid = found
         best = np.unravel_index(int(np.argmax(score)), score.shape)
         if score[best] <= -1.0:
             return None
+        c = grid.spec.cell_size
         r, col = subpixel_peak(score, best) if self.level == 1 else best
         dr, dc = shift_of_index((r, col), spec.shape)
         tx = grid.spec.x0 - spec.x0 + dc * c

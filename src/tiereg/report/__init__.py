@@ -6,7 +6,8 @@
 - ``dz_before.png`` / ``dz_after.png``: height-difference maps (tie points against the lidar
   surface) before and after the fine stage, with colour and scale bars, and the same as
   ``dz_before.tif`` / ``dz_after.tif`` (median per cell, the reference's CRS);
-- ``residual_histogram.png``, ``coarse_candidates.png`` (when a coarse stage ran);
+- ``residual_histogram.png``; ``coarse_candidates.png`` and ``coarse_correlation.png`` (the
+  correlation surface around the answer), when a coarse stage ran;
 - ``residuals.csv``: per tie point ``x, y, z, dz_before, dz_after, weight, blunder``;
 - ``control_points.csv``, ``control_points.txt`` (``name x y z sx sy sz``) and
   ``control_points_colmap.txt``: lidar control points (:mod:`tiereg.control`).
@@ -68,7 +69,37 @@ def write_report(result, out_dir: str | os.PathLike[str]) -> Report:
         control = select_control_points(local, result.reference, blunder=result.residuals.blunder,
                                         sigma_xy=sxy)
     return _write(result.to_dict(), result.residuals, control, Path(out_dir),
-                  crs_wkt=result.inputs.crs_wkt)
+                  crs_wkt=result.inputs.crs_wkt, correlation=_correlation_window(result))
+
+
+WINDOW_CELLS = 15  # the correlation picture: shifts up to this many cells each way
+
+
+def _correlation_window(result) -> np.ndarray | None:
+    """The coarse score surface of the registered tie points around zero shift, or ``None``."""
+    from ..coarse.search import Scorer
+    from ..coarse.correlation import shift_of_index
+
+    if result.coarse is None or result.reference is None or result.residuals is None:
+        return None
+    placed = result.residuals.xyz - result.reference.origin
+    found = Scorer(placed, result.reference, result.cell_size, 1).surface(0.0, 1.0)
+    if found is None:
+        return None
+    score, _, _, spec, grid = found
+    c = grid.spec.cell_size
+    # the index of zero shift: tx = grid.x0 - spec.x0 + dc * c = 0 (and the same in y)
+    d0 = np.array([(spec.y0 - grid.spec.y0) / -c, (spec.x0 - grid.spec.x0) / c])
+    i0 = np.rint(np.array(shift_of_index((0.0, 0.0), spec.shape)) * -1 + d0).astype(int)
+    k = WINDOW_CELLS
+    out = np.full((2 * k + 1, 2 * k + 1), -1.0)
+    r0, c0 = i0[0] - k, i0[1] - k
+    rs, cs = max(r0, 0), max(c0, 0)
+    re, ce = min(i0[0] + k + 1, score.shape[0]), min(i0[1] + k + 1, score.shape[1])
+    if re <= rs or ce <= cs:
+        return None
+    out[rs - r0:re - r0, cs - c0:ce - c0] = score[rs:re, cs:ce]
+    return out
 
 
 def report_from_result_file(result_json: str | os.PathLike[str],
@@ -131,7 +162,8 @@ def _dz_grid(xy: np.ndarray, dz: np.ndarray, cell: float) -> tuple[np.ndarray, G
 
 
 def _write(data: dict[str, Any], residuals: PointResiduals,
-           control: tuple[ControlPoint, ...], out: Path, *, crs_wkt: str | None) -> Report:
+           control: tuple[ControlPoint, ...], out: Path, *, crs_wkt: str | None,
+           correlation: np.ndarray | None = None) -> Report:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -154,6 +186,9 @@ def _write(data: dict[str, Any], residuals: PointResiduals,
     if coarse and coarse.get("verified"):
         pictures["coarse_candidates.png"] = figures.coarse_candidates(
             coarse["verified"], coarse.get("search_best"), coarse.get("rival"))
+    if correlation is not None:
+        pictures["coarse_correlation.png"] = figures.correlation_surface(
+            correlation, float(data.get("cell_size") or 1.0), units=units)
     files = []
     for name, png in pictures.items():
         with atomic_output(out / name) as tmp:
@@ -208,6 +243,11 @@ def _sections(data, pictures, before, after, control, limit, units, files):
         evidence += image(pictures["coarse_candidates.png"], "coarse candidates",
                           "each hypothesis the coarse stage verified; the chosen one and the best "
                           "genuinely different rival")
+    if "coarse_correlation.png" in pictures:
+        evidence += image(pictures["coarse_correlation.png"], "correlation surface",
+                          "the registered tie points' grid shifted against the lidar's: one "
+                          "clear peak within a cell of the answer is what a reliable registration "
+                          "looks like (the fine stage works below the cell)")
     sections.append(("Stages and coarse evidence", evidence))
     if control:
         kinds = {k: sum(p.kind == k for p in control) for k in ("height", "xyz")}

@@ -150,3 +150,25 @@ def overlap_picture(reference_xy: np.ndarray, placed_xy: np.ndarray, on: np.ndar
     ax.set_ylabel(f"y - {lo[1]:.0f}")
     ax.legend(loc="upper right", fontsize=7, markerscale=3)
     return _png(fig)
+
+
+def correlation_surface(window: np.ndarray, cell: float, *, units: str) -> bytes:
+    """The masked-NCC score around the answer: shifts of the registered tie points' grid against
+    the reference, in reference units; the answer is at (0, 0)."""
+    plt = _pyplot()
+    half = (window.shape[0] // 2) * cell
+    fig, ax = plt.subplots(figsize=(5.2, 4.4))
+    shown = np.where(window > -1, window, np.nan)
+    im = ax.imshow(shown, extent=(-half - cell / 2, half + cell / 2, -half - cell / 2,
+                                  half + cell / 2), origin="upper", cmap="magma")
+    fig.colorbar(im, ax=ax, label="NCC x sqrt(overlap)")
+    r, c = np.unravel_index(int(np.nanargmax(shown)), shown.shape)
+    ax.scatter([(c - window.shape[1] // 2) * cell], [-(r - window.shape[0] // 2) * cell],
+               marker="+", s=120, c="cyan", label="peak")
+    ax.scatter([0], [0], marker="o", s=60, facecolors="none", edgecolors="white",
+               label="the answer")
+    ax.set_xlabel(f"shift x ({units})")
+    ax.set_ylabel(f"shift y ({units})")
+    ax.set_title("coarse stage: correlation around the answer", fontsize=10)
+    ax.legend(fontsize=7, loc="lower right")
+    return _png(fig)
