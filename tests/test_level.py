@@ -89,3 +89,18 @@ def test_level_data_are_not_levelled(suburb):
     # aerial-triangulation tie points are level already: nothing is turned
     result = register(suburb.moving, suburb.lidar.xyz, fine="none")
     assert result.levelling is None and result.confident
+
+
+def test_level_mountain_blocks_stay_level():
+    # high relief tilts the dominant plane of level tie points by more than 15 degrees; the model
+    # as it is must still be tried, and win
+    from tiereg.level import vertical_from_points
+
+    spec = SceneSpec(kind="mountains", seed=64, world_size_m=4000.0, lidar_size_m=3000.0,
+                     block=ImageBlock(side_m=2200.0), survey=LidarSurvey(density_per_m2=0.5),
+                     hidden=HiddenTransform(heading_deg=75.0, scale=1.5), block_heading_deg=0.0)
+    scene = make_scene(spec)
+    assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 15  # the premise
+    result = register(scene.moving, scene.lidar.xyz, fine="none")
+    assert result.confident
+    assert _rms(result.T_ref_mov, scene.T_ref_mov, scene.moving) < 5.0  # metres, coarse only

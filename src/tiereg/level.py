@@ -8,8 +8,9 @@ so the model is first turned so that its vertical points up:
   is the model's down direction; the cameras lie above the points, which fixes its sign;
 - otherwise from the points: the normal of their dominant plane (robust PCA: the smallest
   principal axis after trimming the points farthest from the plane). Its sign is unknown: both
-  are tried, and the one the reference confirms wins. A block about as thick as it is wide has no
-  dominant plane: the vertical is then ambiguous and the result says so.
+  are tried, and the model as it is (steep ground tilts its own dominant plane), and the one the
+  reference confirms wins. A block about as thick as it is wide has no dominant plane: the
+  vertical is then ambiguous and the result says so.
 
 Level data (tie points of an aerial triangulation) are not touched: points-only levelling acts
 only when the dominant plane is tilted by more than :data:`MIN_TILT_DEG` (terrain slopes are a
@@ -26,7 +27,7 @@ import numpy as np
 from .transform import Transform
 
 MIN_TILT_DEG = 15.0  # points-only: a dominant plane tilted less than this is taken as level
-MAX_FLATNESS = 0.25  # smallest / middle principal spread above this: no dominant plane
+MAX_FLATNESS = 0.5  # smallest / middle principal spread above this: no dominant plane
 TRIM = 0.8  # the robust PCA keeps this share of the points nearest to the plane
 
 
@@ -46,7 +47,8 @@ class Vertical:
 
     @property
     def ambiguous(self) -> bool:
-        return self.flatness > MAX_FLATNESS
+        """Points only: no dominant plane, so no vertical (cameras say it whatever the relief)."""
+        return self.source == "points" and self.flatness > MAX_FLATNESS
 
 
 def _principal(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

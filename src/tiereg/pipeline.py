@@ -198,13 +198,18 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
 
 def _register_levelled(vertical: Vertical, mov_src: PointSource, moving: object,
                        reference: object, **options: Any) -> RegistrationResult:
-    """Level the model by ``vertical`` (both signs when it is unknown) and register it; the
-    answer whose registration is confident (then the more confident) wins."""
+    """Level the model by ``vertical`` (both signs when it is unknown; from points, the model as
+    it is too) and register it; the answer whose registration is confident (then the more
+    confident) wins, and two confident answers are no answer."""
     centre = mov_src.read().xyz.mean(axis=0)
     ups = [np.asarray(vertical.up)] + ([] if vertical.sign_known else [-np.asarray(vertical.up)])
+    levels = [levelling(up, centre) for up in ups]
+    if vertical.source == "points":
+        # steep ground tilts its own dominant plane (by 15-20 degrees in high mountains): the
+        # model as it is may be level already
+        levels.insert(0, Transform.identity())
     results: list[RegistrationResult] = []
-    for up in ups:
-        T_level = levelling(up, centre)
+    for T_level in levels:
         r = register(mov_src, results[0].reference if results else reference, initial=T_level,
                      level="none", **options)
         results.append(replace(r, T_initial=None))
