@@ -221,13 +221,28 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, moving: object,
     info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
             "sign_known": vertical.sign_known, "flatness": vertical.flatness,
             "tried": len(results), "confident_answers": sum(r.confident for r in results)}
-    if sum(r.confident for r in results) > 1:
-        reasons.append("both senses of the vertical register confidently: the answer is ambiguous")
-    confident = best.confident and not vertical.ambiguous and info["confident_answers"] <= 1
+    rivals = [r for r in results if r.confident and r is not best
+              and not _same_answer(r, best, centre[None])]
+    if rivals:
+        reasons.append("two orientations of the vertical register confidently: the answer is "
+                       "ambiguous")
+    confident = best.confident and not vertical.ambiguous and not rivals
     inputs = replace(best.inputs, moving_args=_path_args(moving))
     return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
                    confidence=best.confidence if confident else min(best.confidence, 0.49),
                    levelling=info, inputs=inputs)
+
+
+def _same_answer(a: RegistrationResult, b: RegistrationResult, centre: np.ndarray) -> bool:
+    """Two registrations agree: rotation within 2 degrees, scale within 2 %, the block centre
+    within a cell."""
+    Ta, Tb = a.T_ref_mov, b.T_ref_mov
+    Ra = Ta.matrix[:3, :3] / Ta.parameters().scale
+    Rb = Tb.matrix[:3, :3] / Tb.parameters().scale
+    angle = math.degrees(math.acos(float(np.clip((np.trace(Ra @ Rb.T) - 1) / 2, -1, 1))))
+    ratio = Ta.parameters().scale / Tb.parameters().scale
+    moved = float(np.linalg.norm(Ta.apply(centre) - Tb.apply(centre)))
+    return angle <= 2.0 and abs(ratio - 1) <= 0.02 and moved <= max(a.cell_size, b.cell_size)
 
 
 def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Transform:
