@@ -115,7 +115,6 @@ def main() -> None:
                          "scale_err": ds, "cells": cells, "seconds": seconds,
                          "tilt_deg": lv.get("tilt_deg"), "level_source": lv.get("source", "-"),
                          "note": "; ".join(result.reasons)[:90]})
-            r = rows[-1]
             print(f"{kind}-{case} {'cams' if cameras else 'points'}: correct {correct}, "
                   f"confident {result.confident}, rotation {rot:.2f} deg, {seconds:.1f} s",
                   file=sys.stderr)

@@ -162,20 +162,20 @@ def register_fine(
                    if method == "lsm" else plane_observer_icp(lidar)
                    ) if len(lidar) >= MIN_LIDAR else _no_observations
     start_spread = _spread(observe, placed)
-    model, start = method, Transform.identity()
+    model, start, fit = method, Transform.identity(), None
     if method == "lsm":
         sampler = SurfaceSampler.from_grid(reference.base)
         vertical = solve_helmert(placed, vertical_observer(sampler), hold_displacement=hold)
-        if vertical.converged and _spread(observe, vertical.T.apply(placed)) < start_spread:
+        if observe is _no_observations:  # no lidar points near the tie points: the grid alone
+            model, fit, observe = "vertical", vertical, vertical_observer(sampler)
+            start_spread = _spread(observe, placed)
+        elif vertical.converged and _spread(observe, vertical.T.apply(placed)) < start_spread:
             model, start = "vertical+surface", vertical.T
         else:
             model = "surface"
-        if observe is _no_observations:  # no lidar points (an empty corridor): the grid alone
-            model, start = "vertical", Transform.identity()
-            observe = vertical_observer(sampler)
-            start_spread = _spread(observe, placed)
-    fit = solve_helmert(start.apply(placed), observe, hold_displacement=hold)
-    fit = replace(fit, T=fit.T @ start)
+    if fit is None:
+        fit = solve_helmert(start.apply(placed), observe, hold_displacement=hold)
+        fit = replace(fit, T=fit.T @ start)
     if method == "lsm" and model != "vertical" and fit.n_observed >= 10:
         # again from there, with the lidar right around the tie points only: far from the answer
         # the nearest point in 3-D may lie beside a tie point (up a slope, on the next crown)
