@@ -30,10 +30,14 @@ from .points import PointSet, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats, PointResiduals
 from .reference import Reference, base_cell_for, point_spacing, prepare_reference
-from .surface import SurfaceSampler
+from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
 
 MIN_MOVING_POINTS = 30
+# the quality heights: local planes of the lidar within this many spacings of a tie point; half a
+# spacing inside the corridor the fine stage reads (2.5 spacings at least), so that the fine
+# stage's move cannot take a neighbour out of it
+SURFACE_RADIUS_SPACINGS = 2.0
 
 PointsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | PointSet | np.ndarray
 
@@ -250,9 +254,12 @@ def _to_world(T_local: Transform, o_ref: np.ndarray, o_mov: np.ndarray) -> Trans
     return Transform.from_translation(o_ref) @ T_local @ Transform.from_translation(-o_mov)
 
 
-def height_differences(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> np.ndarray:
-    """``Z(x, y) - z`` of points (the sampler's local frame) on the surface; NaN off it."""
-    z, ok = sampler.sample(xyz_ref[:, 0], xyz_ref[:, 1])
+def height_differences(xyz_ref: np.ndarray, surface: SurfaceSampler | LocalSurface
+                       ) -> np.ndarray:
+    """``Z(x, y) - z`` of points (the surface's local frame) on the surface; NaN off it."""
+    if isinstance(surface, LocalSurface):
+        return surface.heights(xyz_ref[:, 0], xyz_ref[:, 1]) - xyz_ref[:, 2]
+    z, ok = surface.sample(xyz_ref[:, 0], xyz_ref[:, 1])
     return np.where(ok, z - xyz_ref[:, 2], np.nan)
 
 
@@ -397,11 +404,18 @@ def register(
         fine_note = "skipped: the coarse answer is not confident"
 
     placed = T_local.apply(mov_local)
-    dz_after = height_differences(placed, sampler)
+    # the heights after registration against the lidar's own points where the fine stage read
+    # them (a grid cell's mean is metres off beside walls and in canopy gaps), else the grid
+    surface: SurfaceSampler | LocalSurface = sampler
+    if fine_result is not None and fine_result.lidar is not None and len(fine_result.lidar) >= 50:
+        surface = LocalSurface(fine_result.lidar, radius=SURFACE_RADIUS_SPACINGS * ref.spacing)
+    if fine_result is not None:
+        fine_result = replace(fine_result, lidar=None)
+    dz_after = height_differences(placed, surface)
     after = HeightStats.from_dz(dz_after, len(placed))
     accepted = fine_result is not None and not fine_result.refused
     residuals = PointResiduals.from_dz(
-        placed + o_ref, height_differences(T_before_fine.apply(mov_local), sampler), dz_after,
+        placed + o_ref, height_differences(T_before_fine.apply(mov_local), surface), dz_after,
         np.where(np.isfinite(fine_result.fit.residuals), fine_result.fit.weights, np.nan)
         if accepted else None)
     T_ref_mov = _to_world(T_local, o_ref, o_mov) @ T_start

@@ -1,4 +1,5 @@
-"""A gridded reference surface seen at arbitrary positions: bilinear heights and gradients.
+"""The reference surface seen at arbitrary positions: bilinear heights and gradients of a grid
+(:class:`SurfaceSampler`), and local planes of the reference's own points (:class:`LocalSurface`).
 
 The one home of surface sampling for the coarse refinement, the fine stage and the quality
 statistics. Positions are in the grid's (local) coordinates; cells are addressed as everywhere in
@@ -74,3 +75,53 @@ class SurfaceSampler:
         dz_dcol = (v[r0, c1] - v[r0, c0]) * (1 - fr) + (v[r1, c1] - v[r1, c0]) * fr
         dz_drow = (v[r1, c0] - v[r0, c0]) * (1 - fc) + (v[r1, c1] - v[r0, c1]) * fc
         return dz_dcol / spec.cell_size, -dz_drow / spec.cell_size
+
+
+STEEP_NZ = 0.5  # planes steeper than 60 degrees give the nearest point's height instead
+
+
+@dataclass(frozen=True, eq=False)
+class LocalSurface:
+    """Heights of the reference's own points: at a position, the plane through its
+    ``neighbours`` nearest points in plan (principal axes), where they lie within ``radius``.
+
+    Finer than any grid: a tie point beside a wall or in a canopy gap is compared with the lidar
+    right there, not with a cell's mean.
+    """
+
+    points: np.ndarray = field(repr=False)  # (N, 3), local coordinates
+    radius: float
+    neighbours: int = 8
+    _tree: object = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        from scipy.spatial import cKDTree
+
+        object.__setattr__(self, "_tree", cKDTree(self.points[:, :2]))
+
+    def heights(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``Z`` at each position (NaN where the neighbourhood is not full)."""
+        xy = np.column_stack([x, y])
+        k = min(self.neighbours, len(self.points))
+        dist, idx = self._tree.query(xy, k=k, distance_upper_bound=self.radius)
+        dist = dist.reshape(len(xy), -1)
+        idx = idx.reshape(len(xy), -1)
+        z = np.full(len(xy), np.nan)
+        full = np.isfinite(dist).all(axis=1)
+        if not full.any():
+            return z
+        nb = self.points[idx[full]]
+        c = nb.mean(axis=1)
+        d = nb - c[:, None, :]
+        _, vecs = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d))
+        n = vecs[:, :, 0]
+        q = xy[full]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zp = c[:, 2] - (n[:, 0] * (q[:, 0] - c[:, 0]) + n[:, 1] * (q[:, 1] - c[:, 1])) / n[:, 2]
+        # a steep plane (a wall, the step at a roof's edge) has no height to speak of: there the
+        # nearest point's, the highest of several as near (the visible surface, which a tie
+        # point lies on)
+        dd = dist[full]
+        nearest = np.where(dd <= dd[:, :1] + 1e-9, nb[:, :, 2], -np.inf).max(axis=1)
+        z[full] = np.where(np.abs(n[:, 2]) >= STEEP_NZ, zp, nearest)
+        return z

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -56,6 +56,9 @@ class FineResult:
     n_lidar: int  # lidar points read near the tie points
     seconds: float
     refused: str = ""  # why the fine answer was refused (the coarse pose stands); "" if accepted
+    # the lidar points it read near the tie points (local frame), for the quality statistics;
+    # the pipeline drops them once used
+    lidar: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def held(self) -> tuple[str, ...]:
@@ -188,7 +191,8 @@ def register_fine(
                 fit = replace(again, T=again.T @ fit.T)
     refused = _refusal(fit, placed, observe, start_spread, MAX_MOVE_CELLS * cell_size,
                        require_convergence=method == "lsm")
-    return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused)
+    return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
+                      lidar)
 
 
 def _within(points: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:

@@ -105,9 +105,11 @@ def _correlation_window(result) -> np.ndarray | None:
 def report_from_result_file(result_json: str | os.PathLike[str],
                             out_dir: str | os.PathLike[str], *, progress=None) -> Report:
     """The report of an earlier registration, from its RESULT.json and the inputs it names."""
+    from ..fine.lsm import lidar_near
     from ..io import open_points
-    from ..pipeline import register
+    from ..pipeline import SURFACE_RADIUS_SPACINGS, height_differences, register
     from ..reference import prepare_reference
+    from ..surface import LocalSurface
     from ..transform import Transform
 
     path = Path(result_json)
@@ -142,8 +144,18 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     after = register(given["moving"], reference, initial=T_final, **opts)
     prior = register(given["moving"], reference, initial=T_before, **opts)
     assert after.residuals is not None and prior.residuals is not None
-    residuals = PointResiduals.from_dz(after.residuals.xyz, prior.residuals.dz_after,
-                                       after.residuals.dz_after)
+    # heights against the lidar's own points, as the registration measured them
+    local_after = after.residuals.xyz - reference.origin
+    local_before = prior.residuals.xyz - reference.origin
+    radius = SURFACE_RADIUS_SPACINGS * reference.spacing
+    lidar = lidar_near(reference, np.vstack([local_after, local_before])[:, :2], radius)
+    if len(lidar) >= 50:
+        surface = LocalSurface(lidar, radius=radius)
+        dz_before = height_differences(local_before, surface)
+        dz_after = height_differences(local_after, surface)
+    else:
+        dz_before, dz_after = prior.residuals.dz_after, after.residuals.dz_after
+    residuals = PointResiduals.from_dz(after.residuals.xyz, dz_before, dz_after)
     control = ()
     if data.get("confident") and after.reference is not None:
         control = select_control_points(after.residuals.xyz - after.reference.origin,
