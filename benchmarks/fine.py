@@ -193,16 +193,19 @@ class KindSetup:
                                 block_heading_deg=float(self.rng.uniform(0, 360)))
 
 
-def kind_setup(index: int, kind: str) -> KindSetup:
-    spec = SceneSpec(kind=kind, seed=40 + index, **SCENE)
+def kind_setup(index: int, kind: str, *, scene: dict | None = None, seed0: int = 40,
+               work: Path = WORK, rng_seed: int = 2027) -> KindSetup:
+    """A scene kind's world, lidar (written to ``work`` once) and reference gridded at an eighth
+    of the tie cell, as ``tiereg register`` would; ``scene`` overrides :data:`SCENE`."""
+    spec = SceneSpec(kind=kind, seed=seed0 + index, **(SCENE if scene is None else scene))
     world = make_world(kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=spec.seed)
     base = make_scene(spec, world=world)
-    laz = WORK / f"{kind}-{spec.seed}"
+    laz = work / f"{kind}-{spec.seed}"
     if not (laz / "reference.laz").exists():
         write_scene(base, laz)
     cell = cell_size_from_density(base.tie_points.true_xyz)
     ref = prepare_reference(open_points(laz / "reference.laz"), base_cell=cell / 8)
-    return KindSetup(spec, world, base, ref, cell, np.random.default_rng([2027, index]))
+    return KindSetup(spec, world, base, ref, cell, np.random.default_rng([rng_seed, index]))
 
 
 def run_kind(job) -> tuple[list[Outcome], dict]:

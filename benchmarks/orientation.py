@@ -28,20 +28,18 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 WORK = HERE / "work" / "orientation"
 
+sys.path.insert(0, str(HERE))
+
+from fine import kind_setup  # noqa: E402
+
 from tiereg import register  # noqa: E402
-from tiereg.grid import cell_size_from_density  # noqa: E402
-from tiereg.io import open_points  # noqa: E402
-from tiereg.reference import prepare_reference  # noqa: E402
 from tiereg.simulate import (  # noqa: E402
     KINDS,
     HiddenTransform,
     ImageBlock,
     LidarSurvey,
-    SceneSpec,
     make_scene,
-    make_world,
     oriented_model,
-    write_scene,
 )
 
 SCENE = {"world_size_m": 4000.0, "lidar_size_m": 3000.0, "block": ImageBlock(side_m=2200.0),
@@ -78,15 +76,8 @@ def main() -> None:
     rows = []
     t_all = time.perf_counter()
     for index, kind in enumerate(KINDS):
-        rng = np.random.default_rng([2028, index])
-        spec = SceneSpec(kind=kind, seed=60 + index, **SCENE)
-        world = make_world(kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=spec.seed)
-        base = make_scene(spec, world=world)
-        laz = WORK / f"{kind}-{spec.seed}"
-        if not (laz / "reference.laz").exists():
-            write_scene(base, laz)
-        cell = cell_size_from_density(base.tie_points.true_xyz)
-        ref = prepare_reference(open_points(laz / "reference.laz"), base_cell=cell / 8)
+        k = kind_setup(index, kind, scene=SCENE, seed0=60, work=WORK, rng_seed=2028)
+        rng, spec, world, base, ref, cell = k.rng, k.spec, k.world, k.base, k.ref, k.cell
         for case in range(args.cases + 1):
             negative = case == args.cases
             hidden = replace(HiddenTransform.random(rng), tilt_deg=(0.0, 0.0))

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from .fine.lsm import lidar_near
 from .reference import Reference
 from .robust import nmad
+from .surface import fit_planes, plane_heights
 
 PATCH_POINTS = 12  # lidar points per patch
 MAX_SLOPE_DEG = 15.0  # gently sloped patches only
@@ -72,27 +73,17 @@ def select_control_points(
     if len(rows) == 0:
         return ()
     nb = lidar[idx[rows]]
-    c = nb.mean(axis=1)
-    d = nb - c[:, None, :]
-    evals, evecs = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d) / PATCH_POINTS)
-    normal = evecs[:, :, 0] * np.where(evecs[:, 2, 0] < 0, -1.0, 1.0)[:, None]
-    roughness = np.sqrt(np.maximum(evals[:, 0], 0.0) * PATCH_POINTS / (PATCH_POINTS - 3))
+    c, normal, rough = fit_planes(nb)
+    roughness = rough * math.sqrt(PATCH_POINTS / (PATCH_POINTS - 3))  # unbiased: 3 parameters
     slope = np.degrees(np.arccos(np.clip(normal[:, 2], -1.0, 1.0)))
     q = xyz_local[rows]
     offset = np.hypot(*(q[:, :2] - c[:, :2]).T)
-    # the plane's height at the tie point: z = c_z - (n_x (x - c_x) + n_y (y - c_y)) / n_z
-    z_plane = c[:, 2] - (normal[:, 0] * (q[:, 0] - c[:, 0])
-                         + normal[:, 1] * (q[:, 1] - c[:, 1])) / normal[:, 2]
+    z_plane = plane_heights(c, normal, q)  # the plane's height at the tie point
     residual = q[:, 2] - z_plane
     # the same plane from the nearest half of the patch: a curved patch (a ridge, a roof's edge,
     # a crown) gives another height, a plane the same
-    half = PATCH_POINTS // 2
-    c6 = nb[:, :half].mean(axis=1)
-    d6 = nb[:, :half] - c6[:, None, :]
-    _, v6 = np.linalg.eigh(np.einsum("mki,mkj->mij", d6, d6))
-    n6 = v6[:, :, 0] * np.where(v6[:, 2, 0] < 0, -1.0, 1.0)[:, None]
-    z_half = c6[:, 2] - (n6[:, 0] * (q[:, 0] - c6[:, 0])
-                         + n6[:, 1] * (q[:, 1] - c6[:, 1])) / np.maximum(n6[:, 2], 1e-6)
+    c6, n6, _ = fit_planes(nb[:, : PATCH_POINTS // 2])
+    z_half = plane_heights(c6, n6, q)
     floor = max(float(np.percentile(roughness, 10)), 1e-9)  # the lidar's own noise, roughly
     spread = max(nmad(residual), 1e-9)
     ok = ((slope <= MAX_SLOPE_DEG) & (roughness <= MAX_ROUGHNESS_NOISE * floor)

@@ -200,12 +200,12 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
     return None
 
 
-def _register_levelled(vertical: Vertical, mov_src: PointSource, moving: object,
-                       reference: object, **options: Any) -> RegistrationResult:
+def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndarray,
+                       moving: object, reference: object, **options: Any) -> RegistrationResult:
     """Level the model by ``vertical`` (both signs when it is unknown; from points, the model as
     it is too) and register it; the answer whose registration is confident (then the more
-    confident) wins, and two confident answers are no answer."""
-    centre = mov_src.read().xyz.mean(axis=0)
+    confident) wins, and two confident answers that disagree are no answer. ``centre``: the
+    model's centroid, which the levelling turns about."""
     ups = [np.asarray(vertical.up)] + ([] if vertical.sign_known else [-np.asarray(vertical.up)])
     levels = [levelling(up, centre) for up in ups]
     if vertical.source == "points":
@@ -330,7 +330,8 @@ def register(
     if initial is None and coarse != "none" and level != "none":
         vertical = find_vertical(mov_src, mov.xyz, mode=level)
         if vertical is not None:
-            return _register_levelled(vertical, mov_src, moving, reference, coarse=coarse,
+            return _register_levelled(vertical, mov_src, mov.xyz.mean(axis=0), moving,
+                                      reference, coarse=coarse,
                                       fine=fine, cell_size=cell_size,
                                       reference_format=reference_format, progress=progress)
     if initial is not None and not isinstance(initial, Transform):

@@ -80,6 +80,26 @@ class SurfaceSampler:
 STEEP_NZ = 0.5  # planes steeper than 60 degrees give the nearest point's height instead
 
 
+def fit_planes(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Planes through patches of points ``(m, k, 3)`` by principal axes: centroids ``(m, 3)``,
+    upward unit normals ``(m, 3)`` and the standard deviation of the points off each plane
+    (``sqrt`` of the smallest eigenvalue of the patch covariance)."""
+    c = patches.mean(axis=1)
+    d = patches - c[:, None, :]
+    evals, vecs = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d) / patches.shape[1])
+    n = vecs[:, :, 0]
+    n = n * np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    return c, n, np.sqrt(np.maximum(evals[:, 0], 0.0))
+
+
+def plane_heights(centroid: np.ndarray, normal: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``z = c_z - (n_x (x - c_x) + n_y (y - c_y)) / n_z`` of each plane at its position
+    (``inf``/NaN for vertical planes)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return centroid[:, 2] - (normal[:, 0] * (xy[:, 0] - centroid[:, 0])
+                                 + normal[:, 1] * (xy[:, 1] - centroid[:, 1])) / normal[:, 2]
+
+
 @dataclass(frozen=True, eq=False)
 class LocalSurface:
     """Heights of the reference's own points: at a position, the plane through its
@@ -111,13 +131,8 @@ class LocalSurface:
         if not full.any():
             return z
         nb = self.points[idx[full]]
-        c = nb.mean(axis=1)
-        d = nb - c[:, None, :]
-        _, vecs = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d))
-        n = vecs[:, :, 0]
-        q = xy[full]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            zp = c[:, 2] - (n[:, 0] * (q[:, 0] - c[:, 0]) + n[:, 1] * (q[:, 1] - c[:, 1])) / n[:, 2]
+        c, n, _ = fit_planes(nb)
+        zp = plane_heights(c, n, xy[full])
         # a steep plane (a wall, the step at a roof's edge) has no height to speak of: there the
         # nearest point's, the highest of several as near (the visible surface, which a tie
         # point lies on)

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..robust import nmad
+from ..surface import fit_planes
 from .solver import Observer
 
 NORMAL_POINTS = 12  # lidar neighbours of a normal (icp-plane)
@@ -62,12 +63,7 @@ def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS
         todo = np.unique(idx[np.isnan(normals[idx, 0])])
         if len(todo):
             _, nb = tree.query(lidar[todo], k=k)
-            pts = lidar[nb]
-            d = pts - pts.mean(axis=1, keepdims=True)
-            evals, vecs = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d) / k)
-            n = vecs[:, :, 0]
-            normals[todo] = n * np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
-            roughness[todo] = np.sqrt(np.maximum(evals[:, 0], 0.0))
+            _, normals[todo], roughness[todo] = fit_planes(lidar[nb])
         return normals[idx], roughness[idx]
 
     def observe(q: np.ndarray):
