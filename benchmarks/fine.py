@@ -135,7 +135,7 @@ def run_case(kind: str, case: int, spec: SceneSpec, world, lidar, ref,
     else:
         T_start, start = perturbed(T_true, moving), "perturbed truth"
     out[0].start = start
-    for method in ("lsm", "icp-point", "icp-plane"):
+    for method in ("lsm", "planes", "icp-point", "icp-plane"):
         fine = register(moving, ref, coarse="none", fine=method, initial=T_start)
         f = fine.fine
         out.append(Outcome(f"tiereg {method}", kind, case, start,

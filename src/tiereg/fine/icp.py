@@ -29,6 +29,7 @@ from ..surface import fit_planes
 from .solver import Observer
 
 NORMAL_POINTS = 12  # lidar neighbours of a normal (icp-plane)
+BEND_RAD = 0.15  # a patch turning by more than this across its radius is curved (9 degrees)
 
 
 def point_observer(lidar: np.ndarray) -> Observer:
@@ -46,37 +47,67 @@ def point_observer(lidar: np.ndarray) -> Observer:
     return observe
 
 
-def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
-                           weighted: bool = False) -> Observer:
-    """``r = n . (q - p)``, ``g = n``: ``p`` the nearest lidar point in 3-D, ``n`` the upward
-    normal of its ``neighbours`` nearest points (computed once per lidar point, when first needed).
+class NearestPlanes:
+    """The observation model ``r = n . (q - p)``, ``g = n``: ``p`` the nearest lidar point in 3-D,
+    ``n`` the upward normal of its ``neighbours`` nearest points (computed once per lidar point,
+    when first needed). Call it as an :data:`~tiereg.fine.solver.Observer`.
 
     ``weighted``: rows scaled by ``1 / sqrt(1 + (rho / sigma)^2)`` (see the module docstring), so
     that the solver's standardized residuals are those of the weighted problem.
+
+    :meth:`surface_class` tells the solver's jackknife what kind of surface each observation sees:
+    the bend of the patch, from the osculating paraboloid at ``p``, ``h(u) = -kappa |u|^2 / 2``
+    fitted to its neighbours (``kappa = -2 sum h_j / sum |u_j|^2``, ``h_j`` their heights over
+    the plane at ``p`` and ``u_j`` their offsets along it). Tie points in the creases between
+    crowns or at the foot of a wall lie below the plane a patch of lidar 1 m apart gives them,
+    those on crowns and ridges above it; a bias of one kind shows as disagreement between them.
     """
-    tree = cKDTree(lidar)
-    k = min(neighbours, len(lidar))
-    normals = np.full((len(lidar), 3), np.nan)
-    roughness = np.full(len(lidar), np.nan)
 
-    def patch_of(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        todo = np.unique(idx[np.isnan(normals[idx, 0])])
+    def __init__(self, lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
+                 weighted: bool = False) -> None:
+        self.lidar, self.weighted = lidar, weighted
+        self._tree = cKDTree(lidar)
+        self._k = min(neighbours, len(lidar))
+        self._normal = np.full((len(lidar), 3), np.nan)
+        self._roughness = np.full(len(lidar), np.nan)
+        self._turn = np.zeros(len(lidar))  # kappa times the patch radius (radians)
+
+    def _patch(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        todo = np.unique(idx[np.isnan(self._normal[idx, 0])])
         if len(todo):
-            _, nb = tree.query(lidar[todo], k=k)
-            _, normals[todo], roughness[todo] = fit_planes(lidar[nb])
-        return normals[idx], roughness[idx]
+            _, nb = self._tree.query(self.lidar[todo], k=self._k)
+            patches = self.lidar[nb]
+            _, n, self._roughness[todo] = fit_planes(patches)
+            self._normal[todo] = n
+            d = patches - self.lidar[todo][:, None, :]
+            h = np.einsum("mki,mi->mk", d, n)
+            u2 = np.maximum(np.sum(d**2, axis=2) - h**2, 0.0).sum(axis=1)
+            kappa = -2.0 * h.sum(axis=1) / np.maximum(u2, 1e-300)
+            self._turn[todo] = kappa * np.sqrt(u2 / max(self._k - 1, 1))
+        return self._normal[idx], self._roughness[idx], self._turn[idx]
 
-    def observe(q: np.ndarray):
-        _, idx = tree.query(q)
-        n, rho = patch_of(idx)
-        r = np.einsum("mi,mi->m", n, q - lidar[idx])
-        if weighted:
+    def __call__(self, q: np.ndarray):
+        _, idx = self._tree.query(q)
+        n, rho, _ = self._patch(idx)
+        r = np.einsum("mi,mi->m", n, q - self.lidar[idx])
+        if self.weighted:
             sigma = max(nmad(r), 1e-12)
             s = 1.0 / np.sqrt(1.0 + (rho / sigma) ** 2)
             r, n = r * s, n * s[:, None]
         return r, n, np.ones(len(q), bool)
 
-    return observe
+    def surface_class(self, q: np.ndarray) -> np.ndarray:
+        """0 where the patch at the nearest lidar point is concave (it turns up by more than
+        :data:`BEND_RAD` across its radius), 2 where convex, 1 where it is about flat."""
+        _, idx = self._tree.query(q)
+        turn = self._patch(idx)[2]
+        return np.digitize(turn, (-BEND_RAD, BEND_RAD))
+
+
+def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
+                           weighted: bool = False) -> NearestPlanes:
+    """The nearest-plane observation model (:class:`NearestPlanes`)."""
+    return NearestPlanes(lidar, neighbours=neighbours, weighted=weighted)
 
 
 def plane_observer_icp(lidar: np.ndarray) -> Observer:

@@ -34,6 +34,7 @@ from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform
 from .icp import nearest_plane_observer, plane_observer_icp, point_observer
+from .planes import SegmentPlanes
 from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 
 # The vertical model on gently sloped surfaces only (roofs, ground; cf. Gneeniss et al. 2015): at
@@ -43,6 +44,7 @@ MAX_SLOPE = 1.0  # rise over run: 45 degrees
 SURFACE_POINTS = 8  # lidar neighbours of a surface patch (lsm)
 MIN_LIDAR = 50  # fewer lidar points near the tie points than this: no surface model
 MAX_MOVE_CELLS = 2.0  # a fine answer moving the block farther than this (RMS) is refused
+_MODEL = {"lsm": "surface", "planes": "planes"}  # the observation model after the vertical one
 
 
 @dataclass(frozen=True)
@@ -158,39 +160,45 @@ def register_fine(
     hold = cell_size / 4
     radius = max(2.5 * reference.spacing, cell_size / 4)
     lidar = lidar_near(reference, placed[:, :2], radius)
-    if method == "icp-point":
-        observe = point_observer(lidar) if len(lidar) >= MIN_LIDAR else _no_observations
+    if len(lidar) < MIN_LIDAR:
+        observe = _no_observations
+    elif method == "icp-point":
+        observe = point_observer(lidar)
+    elif method == "icp-plane":
+        observe = plane_observer_icp(lidar)
+    elif method == "planes":
+        observe = SegmentPlanes(lidar, placed, spacing=reference.spacing)
     else:
-        observe = (nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True)
-                   if method == "lsm" else plane_observer_icp(lidar)
-                   ) if len(lidar) >= MIN_LIDAR else _no_observations
+        observe = nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True)
     start_spread = _spread(observe, placed)
     model, start, fit = method, Transform.identity(), None
-    if method == "lsm":
+    if method in ("lsm", "planes"):
         sampler = SurfaceSampler.from_grid(reference.base)
         vertical = solve_helmert(placed, vertical_observer(sampler), hold_displacement=hold)
         if observe is _no_observations:  # no lidar points near the tie points: the grid alone
             model, fit, observe = "vertical", vertical, vertical_observer(sampler)
             start_spread = _spread(observe, placed)
         elif vertical.converged and _spread(observe, vertical.T.apply(placed)) < start_spread:
-            model, start = "vertical+surface", vertical.T
+            model, start = f"vertical+{_MODEL[method]}", vertical.T
         else:
-            model = "surface"
+            model = _MODEL[method]
     if fit is None:
         fit = solve_helmert(start.apply(placed), observe, hold_displacement=hold)
         fit = replace(fit, T=fit.T @ start)
-    if method == "lsm" and model != "vertical" and fit.n_observed >= 10:
+    if method in ("lsm", "planes") and model != "vertical" and fit.n_observed >= 10:
         # again from there, with the lidar right around the tie points only: far from the answer
-        # the nearest point in 3-D may lie beside a tie point (up a slope, on the next crown)
+        # the nearest point in 3-D may lie beside a tie point (up a slope, on the next crown);
+        # planes: segmented again around where the tie points now are
         q = fit.T.apply(placed)
         close = _within(lidar, q[:, :2], 2.5 * reference.spacing)
         if len(close) >= MIN_LIDAR:
-            near = nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True)
+            near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
+                    else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True))
             again = solve_helmert(q, near, hold_displacement=hold)
             if again.n_observed >= 10:
                 fit = replace(again, T=again.T @ fit.T)
     refused = _refusal(fit, placed, observe, start_spread, MAX_MOVE_CELLS * cell_size,
-                       require_convergence=method == "lsm")
+                       require_convergence=method in ("lsm", "planes"))
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
                       lidar)
 

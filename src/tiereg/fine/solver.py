@@ -16,10 +16,12 @@ eq. 8-11, with the distance gradients of Rosenholm & Torlegard 1988 for vertical
 
 Weights are robust (iteratively reweighted): Huber for the first iterations, Tukey's biweight
 after, both on residuals scaled by their NMAD. The precision is ``sigma0^2 (A^T P A)^-1`` at
-convergence, or the delete-one-block jackknife's where that is larger (errors correlated in space:
-:func:`block_jackknife_sd`). A parameter the data cannot determine (horizontal shift on flat
-ground, heading on a featureless plane) is detected by its standard deviation, converted to a
-displacement at the edge of the block, and held at its starting value.
+convergence, or the delete-one-group jackknife's where that is larger (:func:`jackknife_sd`):
+errors correlated in space (:func:`spatial_blocks`) or shared by one kind of surface (its slope,
+aspect and roughness, :func:`surface_classes`, and its bend, where the observer tells it). A
+parameter the data cannot determine (horizontal shift on flat ground, heading on a featureless
+plane) is detected by its standard deviation, converted to a displacement at the edge of the
+block, and held at its starting value.
 """
 
 from __future__ import annotations
@@ -37,7 +39,9 @@ PARAMETERS = ("scale", "omega", "phi", "kappa", "tx", "ty", "tz")
 HUBER_K, TUKEY_C = 1.345, 4.685  # in units of the residual scale (95 % efficiency each)
 HUBER_ITERATIONS = 3
 
-# observe(q) -> (r, g, ok): distances (N,), their gradients (N, 3), and which points have one
+# observe(q) -> (r, g, ok): distances (N,), their gradients (N, 3), and which points have one.
+# An observer may also have ``surface_class(q) -> (N,) int``: groups of observations whose errors
+# may share a bias (see :func:`jackknife_sd`), e.g. :meth:`tiereg.fine.icp.NearestPlanes.surface_class`
 Observer = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
@@ -89,26 +93,22 @@ def robust_weights(u: np.ndarray, *, tukey: bool) -> np.ndarray:
     return np.where(a <= HUBER_K, 1.0, HUBER_K / np.maximum(a, 1e-300))
 
 
-def block_jackknife_sd(A: np.ndarray, w: np.ndarray, r: np.ndarray, xy: np.ndarray, *,
-                       blocks_per_side: int = 4) -> np.ndarray:
+def jackknife_sd(A: np.ndarray, w: np.ndarray, r: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Standard deviations of the weighted least-squares step ``(A^T W A)^-1 A^T W (-r)`` by the
-    delete-one-block jackknife over a ``blocks_per_side`` squared grid of the points' positions.
+    delete-one-group jackknife over the groups of observations that ``labels`` names.
 
-    The formal covariance ``sigma0^2 N^-1`` assumes independent distances; where the lidar's
-    surface misses the tie points' one in places (canopy gaps, roof edges, steep slopes) the
-    errors are correlated in space and the formal precision is too optimistic. Leaving out one
-    spatial block at a time and solving the normal equations of the rest (Efron & Stein 1981;
-    for spatial blocks, Kunsch 1989) measures that: ``var = (K - 1) / K * sum (d_k - mean d)^2``.
+    The formal covariance ``sigma0^2 N^-1`` assumes independent distances. Where the lidar's
+    surface misses the tie points' one in places (canopy gaps, roof edges, steep slopes), the
+    errors are correlated, in space or by the kind of surface, and the formal precision is too
+    optimistic. Leaving out one group at a time and solving the normal equations of the rest
+    (Efron & Stein 1981; for spatial blocks, Kunsch 1989) measures that:
+    ``var = (K - 1) / K * sum (d_k - mean d)^2`` over the ``K`` groups.
     """
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    cell = np.floor((xy - lo) / np.maximum(hi - lo, 1e-12) * blocks_per_side).clip(
-        0, blocks_per_side - 1).astype(int)
-    label = cell[:, 0] * blocks_per_side + cell[:, 1]
     Aw = A * w[:, None]
     N, b = Aw.T @ A, -Aw.T @ r
     steps = []
-    for k in np.unique(label):
-        rows = label == k
+    for k in np.unique(labels):
+        rows = labels == k
         if rows.sum() == len(r) or w[rows].sum() <= 0:
             continue
         Nk = N - Aw[rows].T @ A[rows]
@@ -122,6 +122,28 @@ def block_jackknife_sd(A: np.ndarray, w: np.ndarray, r: np.ndarray, xy: np.ndarr
     d = np.array(steps)
     K = len(d)
     return np.sqrt((K - 1) / K * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
+
+
+def spatial_blocks(xy: np.ndarray, *, blocks_per_side: int = 4) -> np.ndarray:
+    """Labels of a ``blocks_per_side`` squared grid over the points' positions."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    cell = np.floor((xy - lo) / np.maximum(hi - lo, 1e-12) * blocks_per_side).clip(
+        0, blocks_per_side - 1).astype(int)
+    return cell[:, 0] * blocks_per_side + cell[:, 1]
+
+
+def surface_classes(g: np.ndarray) -> np.ndarray:
+    """Labels by the kind of surface an observation sees: gently sloped (within 20 degrees of
+    level) or facing one of four quadrants, each split at the median of the row's weight
+    ``|g|`` (the roughness weight of :func:`~tiereg.fine.icp.nearest_plane_observer`; all equal
+    for the vertical model). A bias that belongs to one kind of surface (tie points below canopy,
+    at one side of the roofs) makes these groups disagree."""
+    norm = np.linalg.norm(g, axis=1)
+    n = g / np.maximum(norm, 1e-300)[:, None]
+    quadrant = (np.floor((np.arctan2(n[:, 1], n[:, 0]) + np.pi / 4) / (np.pi / 2)) % 4).astype(int)
+    orient = np.where(np.abs(n[:, 2]) >= np.cos(np.radians(20.0)), 0, 1 + quadrant)
+    rough = (norm < np.median(norm)).astype(int)
+    return orient * 2 + rough
 
 
 def solve_helmert(
@@ -195,7 +217,7 @@ def solve_helmert(
         step[free] = step_scaled / lever[free]
         if not np.all(np.isfinite(step_scaled)):
             break
-        last = (Af, w, rr, q[ok, :2])
+        last = (Af, w, rr, q[ok], g[ok])
         dT = increment(step, centre)
         T = dT @ T
         w_all[:] = 0.0
@@ -210,8 +232,13 @@ def solve_helmert(
         try:
             cov = sigma0**2 * np.linalg.inv(N)
             sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            if last is not None:  # errors that are correlated in space count too
-                sd = np.maximum(sd, block_jackknife_sd(*last))
+            if last is not None:  # errors correlated in space or by surface count too
+                Af, w, rr, q_ok, g = last
+                groups = [spatial_blocks(q_ok[:, :2]), surface_classes(g)]
+                if hasattr(observe, "surface_class"):
+                    groups.append(observe.surface_class(q_ok))
+                for labels in groups:
+                    sd = np.maximum(sd, jackknife_sd(Af, w, rr, labels))
             sigma[N_free] = sd / lever[N_free]
         except np.linalg.LinAlgError:
             pass
