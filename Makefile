@@ -33,6 +33,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/grid.py
 	$(BIN)/python benchmarks/coarse.py
 	$(BIN)/python benchmarks/fine.py
+	$(BIN)/python benchmarks/precision.py
 	$(BIN)/python benchmarks/control.py
 	$(BIN)/python benchmarks/orientation.py
 

@@ -217,8 +217,23 @@ def test_lsm_finds_the_canopy_surface_where_the_grid_mean_is_metres_off():
     assert rms(result.T_ref_mov) < 0.3  # metres (tie noise 0.15 m / 0.3 m, lidar 1 per m^2)
 
 
+def _jackknife_by_refitting(A, w, r, label):
+    """Slow, obvious reference: solve the weighted least squares again without each group, then
+    the delete-a-group jackknife for unequal groups (Busing et al. 1999)."""
+    def solve(keep):
+        sw = np.sqrt(w[keep])
+        return np.linalg.lstsq(A[keep] * sw[:, None], -r[keep] * sw, rcond=None)[0]
+
+    full = solve(np.ones(len(r), bool))
+    groups = np.unique(label)
+    d = np.array([solve(label != k) for k in groups])
+    h = np.array([w.sum() / w[label == k].sum() for k in groups])[:, None]
+    pseudo = h * full - (h - 1) * d
+    d_J = len(groups) * full - np.sum((1 - 1 / h) * d, axis=0)
+    return np.sqrt(np.sum((pseudo - d_J) ** 2 / (h - 1), axis=0) / len(groups)), d
+
+
 def test_jackknife_matches_refitting_without_each_block():
-    # slow, obvious reference: solve the weighted least squares again without each block
     from tiereg.fine.solver import jackknife_sd, spatial_blocks
 
     rng = np.random.default_rng(6)
@@ -229,15 +244,29 @@ def test_jackknife_matches_refitting_without_each_block():
     # blocks: a 4 x 4 grid over the points' bounding box
     u = (xy - xy.min(axis=0)) / (xy.max(axis=0) - xy.min(axis=0))
     label = (np.minimum(u[:, 0] * 4 // 1, 3) * 4 + np.minimum(u[:, 1] * 4 // 1, 3)).astype(int)
-    steps = []
-    for k in np.unique(label):
-        keep = label != k
-        sw = np.sqrt(w[keep])
-        steps.append(np.linalg.lstsq(A[keep] * sw[:, None], -r[keep] * sw, rcond=None)[0])
-    d = np.array(steps)
-    expected = np.sqrt((len(d) - 1) / len(d) * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
     assert np.array_equal(spatial_blocks(xy), label)
+    expected, _ = _jackknife_by_refitting(A, w, r, label)
     np.testing.assert_allclose(jackknife_sd(A, w, r, label), expected, rtol=1e-9)
+    # equal groups: the classic (G - 1) / G sum (d_j - mean)^2
+    equal = np.arange(400) % 5
+    w1 = np.ones(400)
+    _, d = _jackknife_by_refitting(A, w1, r, equal)
+    classic = np.sqrt(4 / 5 * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
+    np.testing.assert_allclose(jackknife_sd(A, w1, r, equal), classic, rtol=1e-9)
+
+
+def test_a_small_group_does_not_make_the_jackknife_explode():
+    # one group holds 95 % of the points: deleting it leaves a noisy rest, which the unequal-
+    # groups estimator weighs by its size; the answer stays near the formal precision
+    from tiereg.fine.solver import jackknife_sd
+
+    rng = np.random.default_rng(7)
+    A = np.column_stack([np.ones(2000), rng.normal(size=2000)])
+    r = rng.normal(0, 1, 2000)
+    w = np.ones(2000)
+    label = np.where(np.arange(2000) < 1900, 0, 1 + np.arange(2000) % 3)
+    formal = np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
+    assert np.all(jackknife_sd(A, w, r, label) < 3 * formal)
 
 
 def test_precision_covers_an_error_that_is_correlated_in_space():

@@ -59,6 +59,10 @@ def test_overlap_command_writes_outline_and_picture(lidar_xyz, tmp_path, capsys)
     gj = json.loads((tmp_path / "ov" / "overlap.geojson").read_text())
     assert gj["features"][0]["geometry"]["type"] == "MultiPolygon"
     assert (tmp_path / "ov" / "overlap.png").read_bytes()[:4] == b"\x89PNG"
+    # the time of the answer apart from that of reading the lidar (the acceptance's measure)
+    data = json.loads((tmp_path / "ov" / "overlap.json").read_text())
+    assert 0 < data["reference_seconds"] < data["seconds"]
+    assert "s reading and gridding the reference" in out
 
 
 def test_overlap_bad_input_is_one_line(tmp_path, capsys):

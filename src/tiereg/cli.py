@@ -300,6 +300,8 @@ def _cmd_overlap(args: argparse.Namespace) -> int:
                   f"({len(result.outline['coordinates'])} part(s))")
         lines = _summary(r).splitlines()
         print("\n".join(line for line in lines if not line.startswith("confident:")))
+        print(f"time:        {result.seconds - r.reference_seconds:.1f} s "
+              f"(+ {r.reference_seconds:.1f} s reading and gridding the reference)")
         if files:
             print(f"wrote:       {', '.join(str(Path(args.out) / f) for f in files)}")
     return EXIT_OK if result.confident else EXIT_NOT_CONFIDENT

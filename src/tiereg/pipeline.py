@@ -81,7 +81,7 @@ class RegistrationResult:
     quality: HeightStats
     inputs: Inputs
     cell_size: float
-    seconds: float
+    seconds: float  # the whole registration, reading the inputs included
     reasons: tuple[str, ...] = ()
     fine_note: str = ""
     warnings: tuple[str, ...] = ()
@@ -91,6 +91,7 @@ class RegistrationResult:
     # more blocks against the same lidar without reading it again
     reference: Reference | None = field(default=None, repr=False, compare=False)
     levelling: dict[str, Any] | None = None  # how a model in any orientation was levelled
+    reference_seconds: float = 0.0  # of ``seconds``: reading and gridding the reference
 
     def to_dict(self) -> dict[str, Any]:
         stages: list[dict[str, Any]] = []
@@ -118,6 +119,7 @@ class RegistrationResult:
             "cell_size": self.cell_size,
             "base_cell": None if self.reference is None else self.reference.base_cell,
             "seconds": round(self.seconds, 3),
+            "reference_seconds": round(self.reference_seconds, 3),
             "stages": stages,
             "quality": self.quality.to_dict(),
             "quality_before": self.quality_before.to_dict(),
@@ -234,7 +236,8 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
     inputs = replace(best.inputs, moving_args=_path_args(moving))
     return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
                    confidence=best.confidence if confident else min(best.confidence, 0.49),
-                   levelling=info, inputs=inputs)
+                   levelling=info, inputs=inputs, seconds=sum(r.seconds for r in results),
+                   reference_seconds=results[0].reference_seconds)
 
 
 def _same_answer(a: RegistrationResult, b: RegistrationResult, centre: np.ndarray) -> bool:
@@ -292,7 +295,8 @@ def register(
         ``"auto"`` or ``"pomf"`` (translation search), or ``"none"`` (keep the input position).
     fine
         ``"auto"`` or ``"lsm"`` (least-squares matching of the points to the lidar surface,
-        7 parameters, with precision), ``"icp-point"`` or ``"icp-plane"`` (classic ICP, for
+        7 parameters, with precision), ``"planes"`` (matching to planar segments of the lidar
+        around each point), ``"icp-point"`` or ``"icp-plane"`` (classic ICP, for
         comparison and dense moving sets), or ``"none"``. It runs when the coarse answer is
         confident (or ``coarse="none"``).
     cell_size
@@ -346,6 +350,7 @@ def register(
     elif not (cell_size > 0 and math.isfinite(cell_size)):
         raise InputError(f"--cell-size must be a positive number, got {cell_size}")
 
+    reference_seconds = 0.0
     if isinstance(reference, Reference):
         ref = reference
     else:
@@ -355,8 +360,10 @@ def register(
                              "give a file with points in it")
         # auto and search try scales down to a quarter: the base serves the finest of them
         finest = cell_size if coarse in ("pomf", "none") else cell_size / 4
+        t_ref = time.perf_counter()
         ref = prepare_reference(ref_src, base_cell=base_cell_for(finest, point_spacing(ref_src)),
                                 progress=progress)
+        reference_seconds = time.perf_counter() - t_ref
         ref = replace(ref, source_args=_path_args(reference))
     ref_src, o_ref = ref.source, ref.origin
     grid = ref.grid(cell_size)
@@ -442,6 +449,7 @@ def register(
         inputs=inputs,
         cell_size=float(cell_size),
         seconds=time.perf_counter() - t0,
+        reference_seconds=reference_seconds,
         reasons=tuple(reasons),
         fine_note=fine_note,
         warnings=tuple(warnings),

@@ -153,8 +153,8 @@ def register_fine(
 
     ``cell_size``: the registration's grid cell; parameters that move the block by more than a
     quarter of it (one standard deviation) are not determined and are held. ``method``: ``lsm``
-    (vertical, then surface; see the module docstring), ``icp-point`` or ``icp-plane``
-    (:mod:`tiereg.fine.icp`).
+    (vertical, then surface; see the module docstring), ``planes`` (vertical, then planar
+    segments: :mod:`tiereg.fine.planes`), ``icp-point`` or ``icp-plane`` (:mod:`tiereg.fine.icp`).
     """
     t0 = time.perf_counter()
     hold = cell_size / 4

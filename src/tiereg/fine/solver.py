@@ -101,15 +101,22 @@ def jackknife_sd(A: np.ndarray, w: np.ndarray, r: np.ndarray, labels: np.ndarray
     surface misses the tie points' one in places (canopy gaps, roof edges, steep slopes), the
     errors are correlated, in space or by the kind of surface, and the formal precision is too
     optimistic. Leaving out one group at a time and solving the normal equations of the rest
-    (Efron & Stein 1981; for spatial blocks, Kunsch 1989) measures that:
-    ``var = (K - 1) / K * sum (d_k - mean d)^2`` over the ``K`` groups.
+    measures that (Efron & Stein 1981; for spatial blocks, Kunsch 1989). Groups differ in size
+    (a kind of surface may hold most of the points), so the estimator is that for unequal groups
+    (Busing, Meijer & van der Leeden 1999, eq. 5-7): with ``h_j = n / m_j`` (``m_j`` the weight
+    of group ``j``, ``n`` the total), pseudo-values ``t_j = h_j d - (h_j - 1) d_(-j)``, their
+    mean-corrected estimate ``d_J = G d - sum (1 - 1/h_j) d_(-j)``, and
+    ``var = 1/G sum (t_j - d_J)^2 / (h_j - 1)``; for equal groups it is the classic
+    ``(G - 1) / G sum (d_(-j) - mean)^2``.
     """
     Aw = A * w[:, None]
     N, b = Aw.T @ A, -Aw.T @ r
-    steps = []
+    total = float(w.sum())
+    steps, h = [], []
     for k in np.unique(labels):
         rows = labels == k
-        if rows.sum() == len(r) or w[rows].sum() <= 0:
+        m = float(w[rows].sum())
+        if m <= 0 or m >= total:
             continue
         Nk = N - Aw[rows].T @ A[rows]
         bk = b + Aw[rows].T @ r[rows]
@@ -117,11 +124,18 @@ def jackknife_sd(A: np.ndarray, w: np.ndarray, r: np.ndarray, labels: np.ndarray
             steps.append(np.linalg.solve(Nk, bk))
         except np.linalg.LinAlgError:
             return np.full(A.shape[1], np.inf)
+        h.append(total / m)
     if len(steps) < 3:
         return np.zeros(A.shape[1])
-    d = np.array(steps)
-    K = len(d)
-    return np.sqrt((K - 1) / K * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
+    try:
+        d = np.linalg.solve(N, b)
+    except np.linalg.LinAlgError:
+        return np.full(A.shape[1], np.inf)
+    d_j, h_j = np.array(steps), np.array(h)[:, None]
+    G = len(d_j)
+    pseudo = h_j * d - (h_j - 1) * d_j
+    d_J = G * d - np.sum((1 - 1 / h_j) * d_j, axis=0)
+    return np.sqrt(np.sum((pseudo - d_J) ** 2 / (h_j - 1), axis=0) / G)
 
 
 def spatial_blocks(xy: np.ndarray, *, blocks_per_side: int = 4) -> np.ndarray:
