@@ -51,8 +51,8 @@ WORK = HERE / "work" / "coarse"
 RESULTS = HERE / "results"
 SCALES = (0.25, 0.5, 1.0, 2.0, 3.2808, 4.0)  # model units per reference unit; 3.2808: feet
 HEADINGS_PER_SCALE = 3  # one per third of the circle, random inside it
-TIEREG_METHODS = ("auto", "search", "qafmt", "afmt", "fmt", "qafmt-classic", "afmt-classic",
-                  "fmt-classic", "pomf")
+TIEREG_METHODS = ("auto", "search", "moments", "qafmt", "afmt", "fmt", "qafmt-classic",
+                  "afmt-classic", "fmt-classic", "pomf")
 HEADING_TOL_DEG, SCALE_TOL = 2.0, 0.02
 OPEN3D_EVERY = 4  # Open3D runs on every fourth case
 FULL_METHODS = ("auto", "search")  # every case; the other tiereg methods on a sample:

@@ -55,3 +55,40 @@ def test_tie_points_from_elsewhere_are_not_confident(mountains):
     result = register(scene.moving, ref, coarse="auto", fine="none")
     assert not result.confident and result.confidence < 0.5
     assert any("fits almost as well" in r or "weak correlation" in r for r in result.reasons)
+
+
+@pytest.mark.parametrize("angle_deg", [30.0, 120.0])
+def test_spectral_orientation_of_stripes(angle_deg):
+    from tiereg.coarse.moments import spectral_orientation
+    from tiereg.coarse.preprocess import prepare
+
+    # heights varying along the map direction angle_deg (x east, y north; rows run southwards):
+    # the spectrum's energy lies along that direction
+    rows, cols = np.mgrid[0:200, 0:200].astype(float)
+    x, y = cols, -rows
+    a = np.radians(angle_deg)
+    z = np.sin(2 * np.pi * (np.cos(a) * x + np.sin(a) * y) / 9.0)
+    z += 0.3 * np.random.default_rng(0).normal(size=z.shape)
+    p = prepare(z, np.ones(z.shape, bool), bandpass_sigma_cells=6.0)
+    for excess, tol_deg, anisotropy in ((1.0, 6.0, 0.2), (5.0, 1.0, 0.9)):
+        o = spectral_orientation(p, excess=excess)
+        assert abs((np.degrees(o.phi) - angle_deg + 90) % 180 - 90) < tol_deg
+        assert o.anisotropy > anisotropy
+
+
+def test_moments_recovers_a_suburb_and_never_claims_what_it_cannot_explain():
+    world = make_world("suburban", size_m=4000.0, seed=3)
+    lidar = None
+    for heading, scale in ((37.0, 1.0), (300.0, 0.5)):
+        spec = SceneSpec(kind="suburban", seed=3, overlap=0.8, **SMALL,
+                         hidden=HiddenTransform(heading_deg=heading, scale=scale))
+        scene = make_scene(spec, world=world, lidar=lidar)
+        lidar = scene.lidar
+        result = register(scene.moving, lidar.xyz, coarse="moments", fine="none")
+        est, true = result.T_ref_mov.parameters(), scene.T_ref_mov.parameters()
+        centre = scene.moving.mean(axis=0, keepdims=True)
+        err = result.T_ref_mov.apply(centre) - scene.T_ref_mov.apply(centre)
+        correct = (abs((np.degrees(est.kappa - true.kappa) + 180) % 360 - 180) < 2.0
+                   and abs(est.scale / true.scale - 1) < 0.02 and np.hypot(*err[0, :2]) < 40.0)
+        assert correct or not result.confident
+        assert correct, f"heading {heading}, scale {scale}: {result.reasons}"

@@ -24,6 +24,7 @@ from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform, rotation_matrix
 from .fourier_mellin import rotation_scale_candidates
+from .moments import moments_search
 from .preprocess import prepare
 from .refine import fit_to_surface
 from .result import Candidate, CoarseResult
@@ -42,6 +43,9 @@ from .search import (
 )
 
 FREQUENCY_METHODS = ("fmt", "afmt", "qafmt", "fmt-classic", "afmt-classic", "qafmt-classic")
+# methods that try a few candidates, not every hypothesis: confident only when the heights are
+# explained (a rival ratio among a few candidates says nothing about those never tried)
+CANDIDATE_METHODS = (*FREQUENCY_METHODS, "moments")
 
 MIN_RIVAL_RATIO = 1.2  # best sweep score over the best genuinely different one
 MIN_NCC = 0.45
@@ -157,7 +161,8 @@ def register_similarity(
 ) -> CoarseResult:
     """Heading, scale, shift and height offset of centred tie points against a reference.
 
-    ``method``: ``"search"`` (exhaustive sweep), a Fourier-Mellin method (``fmt``, ``afmt``,
+    ``method``: ``"search"`` (exhaustive sweep), ``"moments"`` (heading from the spectra's
+    orientations, :mod:`~tiereg.coarse.moments`), a Fourier-Mellin method (``fmt``, ``afmt``,
     ``qafmt``, robust; ``*-classic``: as published), or ``"auto"`` (``qafmt``, then the sweep
     seeded with its candidates unless its answer is confident and explains the heights).
     """
@@ -175,10 +180,14 @@ def register_similarity(
                                    sigma_range=sigma_range, method="search", seeds=seeds)
         return replace(full, method="auto", seconds=time.perf_counter() - t0,
                        details={**full.details, "decided_by": "search"})
+    extra: dict = {}
     try:
         if method in FREQUENCY_METHODS:
             found = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method=method,
                                      sigma_range=sigma_range)
+        elif method == "moments":
+            found, extra = moments_search(moving_xyz, reference, tie_cell=tie_cell,
+                                          sigma_range=sigma_range)
         else:
             # level, unscaled data are common: the identity is always among the hypotheses
             found = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
@@ -217,11 +226,12 @@ def register_similarity(
     ratio = found.sweep_best.score / rival if rival > 0 else float("inf")
     explained = (residual_ratio <= MAX_RESIDUAL_RATIO and best.ncc >= MIN_NCC_EXPLAINED
                  and ratio >= MIN_RIVAL_RATIO_EXPLAINED)
-    if method in FREQUENCY_METHODS and not explained:
+    if method in CANDIDATE_METHODS and not explained:
         # a few candidates say nothing about the hypotheses never tried: the heights must be
         # explained, a rival ratio among candidates is not evidence
-        reasons.append("the frequency-domain candidates do not explain the heights (residual "
-                       f"ratio {residual_ratio:.2f} > {MAX_RESIDUAL_RATIO})")
+        reasons.append(f"the {'moments' if method == 'moments' else 'frequency-domain'} "
+                       "candidates do not explain the heights (residual ratio "
+                       f"{residual_ratio:.2f} > {MAX_RESIDUAL_RATIO})")
     elif ratio < MIN_RIVAL_RATIO and not explained:
         reasons.append(f"another heading, scale or position fits almost as well (best/rival "
                        f"{ratio:.2f} < {MIN_RIVAL_RATIO})")
@@ -260,5 +270,6 @@ def register_similarity(
             "residual_ratio": residual_ratio,
             "verified": [{"kappa_deg": math.degrees(h.kappa), "scale": h.sigma, "score": h.score}
                          for level in found.levels for h in level],
+            **extra,
         },
     )
