@@ -352,6 +352,16 @@ def scale_run(points: int = SCALE_POINTS, ties: int = SCALE_TIES) -> dict:
                 resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6)}
 
 
+def map_jobs(fn, jobs: list, workers: int) -> list:
+    """``fn`` over ``jobs``, ``workers`` processes at a time (fresh ones: no state shared)."""
+    if workers <= 1:
+        return [fn(j) for j in jobs]
+    from multiprocessing import get_context
+
+    with get_context("spawn").Pool(workers) as pool:
+        return pool.map(fn, jobs, chunksize=1)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="two cases, results to work/")
@@ -368,13 +378,7 @@ def main() -> None:
     kinds = ("suburban", "urban") if args.quick else KINDS
     jobs = [(i, k, args.quick, peers) for i, k in enumerate(kinds)]
     t0 = time.perf_counter()
-    if args.workers > 1:
-        from multiprocessing import get_context
-
-        with get_context("spawn").Pool(args.workers) as pool:
-            parts = pool.map(run_kind, jobs, chunksize=1)
-    else:
-        parts = [run_kind(j) for j in jobs]
+    parts = map_jobs(run_kind, jobs, args.workers)
     outcomes = [o for part, _ in parts for o in part]
     meta = {m["kind"]: m for _, m in parts}
     out_dir = WORK if args.quick else RESULTS

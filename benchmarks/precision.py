@@ -31,7 +31,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from fine import errors_at, kind_setup, perturbed  # noqa: E402
+from fine import errors_at, kind_setup, map_jobs, perturbed  # noqa: E402
 
 from tiereg import register  # noqa: E402
 from tiereg.simulate import KINDS, make_scene  # noqa: E402
@@ -140,13 +140,7 @@ def main() -> None:
     split = "dev" if args.dev else "held-out"
     jobs = [(i, k, args.cases, SEEDS[split], args.method) for i, k in enumerate(KINDS)]
     t0 = time.perf_counter()
-    if args.workers > 1:
-        from multiprocessing import get_context
-
-        with get_context("spawn").Pool(args.workers) as pool:
-            parts = pool.map(run_kind, jobs, chunksize=1)
-    else:
-        parts = [run_kind(j) for j in jobs]
+    parts = map_jobs(run_kind, jobs, args.workers)
     rows = [r for part in parts for r in part]
     print(write_report(rows, WORK if args.dev else RESULTS, split, time.perf_counter() - t0))
 

@@ -32,16 +32,7 @@ from ..grid import GridSpec, rasterize
 from ..reference import Reference
 from .fourier_mellin import _taper
 from .preprocess import Prepared, prepare
-from .search import (
-    RIVAL_KAPPA_DEG,
-    RIVAL_SCALE,
-    RIVAL_SHIFT_TIE_CELLS,
-    NoOverlap,
-    Scorer,
-    SearchResult,
-    distinct_top,
-    refine_candidates,
-)
+from .search import Scorer, SearchResult, verify_candidates
 
 REFERENCE_CELLS = 256  # per side of the reference grid whose spectrum is taken
 KAPPA_OFFSETS_DEG = (-15.0, -7.5, 0.0, 7.5, 15.0)  # the orientations are good to about 10 deg
@@ -111,18 +102,9 @@ def moments_search(
     sigmas = sigma_range[0] * SCALE_RATIO ** np.arange(n_sigma + 1)
     scorer = Scorer(moving, ref, tie_cell, 2)
     hyps = [h for k in kappas for s in sigmas if (h := scorer.score(k, float(s))) is not None]
-    tried = len(kappas) * len(sigmas)
-    if not hyps:
-        raise NoOverlap()
-    ranked = sorted(hyps, key=lambda h: -h.score)
-    top = distinct_top(ranked, 4, kappa_deg=5.0, log_sigma=math.log(SCALE_RATIO),
-                       shift=6 * tie_cell * ranked[0].sigma)
-    rival = next((h for h in ranked if h.distinct_from(
-        top[0], kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
-        shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * top[0].sigma)), None)
-    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell)
-    best = refined[0] if refined else top[0]
-    found = SearchResult(best, rival, top[0], (tuple(top), tuple(refined)), tried + n_refine)
+    found = verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=4,
+                              log_sigma=math.log(SCALE_RATIO),
+                              n_tried=len(kappas) * len(sigmas))
     info = {"heading_from_moments_deg": math.degrees(kappa0) % 180.0,
             "anisotropy_moving": o_mov.anisotropy, "anisotropy_reference": o_ref.anisotropy}
     return found, info

@@ -198,6 +198,32 @@ def search(
     return SearchResult(best, runner_up, sweep_best, (tuple(top), tuple(refined)), n_hyp)
 
 
+def verify_candidates(
+    moving: np.ndarray,
+    ref: Reference,
+    hyps: list[Hypothesis],
+    *,
+    tie_cell: float,
+    keep: int,
+    log_sigma: float,
+    n_tried: int,
+) -> SearchResult:
+    """The answer from a few scored candidates (a frequency-domain or moments method): the
+    ``keep`` best distinct ones (``log_sigma`` apart in scale, 5 deg in heading) refined on the
+    finest level, and the best genuinely different one as the rival."""
+    if not hyps:
+        raise NoOverlap()
+    ranked = sorted(hyps, key=lambda h: -h.score)
+    top = distinct_top(ranked, keep, kappa_deg=5.0, log_sigma=log_sigma,
+                       shift=6 * tie_cell * ranked[0].sigma)
+    rival = next((h for h in ranked if h.distinct_from(
+        top[0], kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
+        shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * top[0].sigma)), None)
+    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell)
+    best = refined[0] if refined else top[0]
+    return SearchResult(best, rival, top[0], (tuple(top), tuple(refined)), n_tried + n_refine)
+
+
 def refine_candidates(
     moving: np.ndarray,
     ref: Reference,

@@ -30,16 +30,12 @@ from .refine import fit_to_surface
 from .result import Candidate, CoarseResult
 from .search import (
     MIN_OVERLAP,
-    RIVAL_KAPPA_DEG,
-    RIVAL_SCALE,
-    RIVAL_SHIFT_TIE_CELLS,
     Hypothesis,
     NoOverlap,
     Scorer,
     SearchResult,
-    distinct_top,
-    refine_candidates,
     search,
+    verify_candidates,
 )
 
 FREQUENCY_METHODS = ("fmt", "afmt", "qafmt", "fmt-classic", "afmt-classic", "qafmt-classic")
@@ -137,17 +133,8 @@ def frequency_search(
             n += 1
             if h is not None:
                 hyps.append(h)
-    if not hyps:
-        raise NoOverlap()
-    ranked = sorted(hyps, key=lambda h: -h.score)
-    top = distinct_top(ranked, 6, kappa_deg=5.0, log_sigma=math.log(1.1),
-                        shift=6 * tie_cell * ranked[0].sigma)
-    rival = next((h for h in ranked if h.distinct_from(
-        top[0], kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
-        shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * top[0].sigma)), None)
-    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell)
-    best = refined[0] if refined else top[0]
-    return SearchResult(best, rival, top[0], (tuple(top), tuple(refined)), n + n_refine)
+    return verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=6,
+                             log_sigma=math.log(1.1), n_tried=n)
 
 
 def register_similarity(
