@@ -1,4 +1,4 @@
-"""Heading from the second moments of the grids' spectra: a quick initialiser (``--coarse moments``).
+"""Heading from the second moments of the grids' spectra: a quick initialiser (``moments``).
 
 The principal axes of a grid's own footprint or heights say where its mass is, which depends on
 what part of the ground each data set covers; those of its power spectrum do not: the spectrum
@@ -15,9 +15,10 @@ by ``kappa`` turns their spectrum by ``kappa``, so ``kappa = phi_ref - phi_mov``
 The spectrum's second moments carry no usable scale (terrain spectra are close to power laws), so
 scale is a one-dimensional scan. About 130 hypotheses (both senses, up to 15 deg around each, as
 the orientations are good to about 10 deg; scales a third of an octave apart) are scored by
-masked NCC and the best refined, against about a thousand in the full sweep. Where neither spectrum has a dominant direction (``anisotropy``
-near 0: hills, forest) the heading is a guess, and the answer's confidence says so: like the
-frequency-domain methods, ``moments`` is confident only when its pose explains the heights.
+masked NCC and the best refined, against about a thousand in the full sweep. Where neither
+spectrum has a dominant direction (``anisotropy`` near 0: hills, forest) the heading is a guess,
+and the answer's confidence says so: like the frequency-domain methods, ``moments`` is confident
+only when its pose explains the heights.
 """
 
 from __future__ import annotations

@@ -10,9 +10,10 @@ and it is not a wall.
 
 The observation is the normal distance ``r = n . (q - c)``, ``g = n`` to the plane of the tie
 point's neighbourhood that the tie point is nearest to, among those whose points reach within a
-spacing of it in plan (chosen at the start of a pass, :class:`SegmentPlanes`), weighted like the ``lsm`` surface model by the plane's roughness
-(:mod:`tiereg.fine.icp`). Tie points near no plane (canopy, rubble, steep slopes) give no
-observation: on such ground ``planes`` determines less than ``lsm`` and says so in ``held``.
+spacing of it in plan (chosen at the start of a pass, :class:`SegmentPlanes`), weighted like the
+``lsm`` surface model by the plane's roughness (:mod:`tiereg.fine.icp`). Tie points near no
+plane (canopy, rubble, steep slopes) give no observation: on such ground ``planes`` determines
+less than ``lsm`` and says so in ``held``.
 """
 
 from __future__ import annotations
@@ -109,10 +110,6 @@ class SegmentPlanes:
         self.centre = np.where(self.ok[:, None], centre[rows, best], 0.0)
         self.normal = np.where(self.ok[:, None], normal[rows, best], 0.0)
         self.rough = np.where(self.ok, rough[rows, best], 0.0)
-
-    @property
-    def n_with_plane(self) -> int:
-        return int(self.ok.sum())
 
     def __call__(self, q: np.ndarray):
         r = np.where(self.ok, np.einsum("mi,mi->m", self.normal, q - self.centre), np.nan)

@@ -40,8 +40,8 @@ HUBER_K, TUKEY_C = 1.345, 4.685  # in units of the residual scale (95 % efficien
 HUBER_ITERATIONS = 3
 
 # observe(q) -> (r, g, ok): distances (N,), their gradients (N, 3), and which points have one.
-# An observer may also have ``surface_class(q) -> (N,) int``: groups of observations whose errors
-# may share a bias (see :func:`jackknife_sd`), e.g. :meth:`tiereg.fine.icp.NearestPlanes.surface_class`
+# An observer may also have ``surface_class(q) -> (N,) int``: groups of observations whose
+# errors may share a bias (see :func:`jackknife_sd`; e.g. ``NearestPlanes.surface_class``)
 Observer = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
