@@ -9,6 +9,7 @@ from tiereg.coarse.correlation import (
     cross_power_correlation,
     local_maxima,
     masked_ncc,
+    match_score,
     peak_to_sidelobe,
     shift_of_index,
     subpixel_peak,
@@ -70,6 +71,28 @@ def test_subpixel_parabola_is_exact_on_a_parabola():
     surface = -((rr - 4.3) ** 2) - 2 * (cc - 3.8) ** 2
     r, c = subpixel_peak(surface, (4, 4))
     assert r == pytest.approx(4.3) and c == pytest.approx(3.8)
+
+
+def test_subpixel_keeps_the_cell_beside_an_unscored_neighbour():
+    rr, cc = np.indices((9, 9))
+    surface = -((rr - 4.3) ** 2) - 2 * (cc - 3.8) ** 2
+    surface[5, 4] = -np.inf  # no score below the peak: rows stay put, columns still refine
+    r, c = subpixel_peak(surface, (4, 4))
+    assert r == 4.0 and c == pytest.approx(3.8)
+
+
+def test_match_score_ranks_as_the_significance_of_the_correlation():
+    """Fisher's z of r over n samples, atanh(r) sqrt(n - 3), for blocks of 400 cells: a 50 %
+    overlap at r = 0.8 is more significant than a full overlap at r = 0.6, and the score orders
+    hypotheses as z does."""
+    cells = 400
+    cases = [(0.8, 0.5), (0.6, 1.0), (0.3, 1.0), (0.95, 0.3), (0.45, 0.6)]
+    z = [np.arctanh(r) * np.sqrt(ov * cells - 3) for r, ov in cases]
+    score = [float(match_score(np.array(r), np.array(ov))) for r, ov in cases]
+    assert np.argsort(score).tolist() == np.argsort(z).tolist()
+    assert score[0] > score[1]  # the plain r sqrt(overlap) says the opposite: 0.57 < 0.6
+    assert 0.8 * np.sqrt(0.5) < 0.6
+    assert np.isfinite(match_score(np.array(1.0), np.array(1.0)))
 
 
 def test_local_maxima_are_distinct_and_ordered():

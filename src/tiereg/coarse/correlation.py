@@ -134,6 +134,22 @@ def masked_ncc(
     return np.clip(ncc, -1.0, 1.0), n
 
 
+MAX_SCORED_NCC = 0.999  # keeps the Fisher transform finite
+
+
+def match_score(ncc: np.ndarray, overlap: np.ndarray) -> np.ndarray:
+    """How strongly a masked NCC over a share ``overlap`` of the block's cells speaks for a match.
+
+    Fisher's z-transform, ``z = atanh(r) sqrt(n - 3)`` (Fisher 1921), is the significance of a
+    correlation ``r`` over ``n`` samples; with ``n`` proportional to the overlap this is
+    ``atanh(r) sqrt(overlap)`` up to a factor common to all hypotheses of one level. A partial
+    overlap that correlates well beats a full overlap that correlates a little, which the plain
+    ``r sqrt(overlap)`` gets wrong for high correlations.
+    """
+    r = np.clip(ncc, -MAX_SCORED_NCC, MAX_SCORED_NCC)
+    return np.arctanh(r) * np.sqrt(np.clip(overlap, 0.0, 1.0))
+
+
 def local_maxima(
     surface: np.ndarray, *, k: int, exclusion: int = 2, valid: np.ndarray | None = None
 ) -> list[tuple[int, int]]:
@@ -169,7 +185,8 @@ def second_peak(surface: np.ndarray, best: tuple[int, int], *, exclusion: int = 
 def subpixel_peak(surface: np.ndarray, peak: tuple[int, int]) -> tuple[float, float]:
     """Refine an integer peak by a 3-point parabola per axis: ``d = (c- - c+) / 2(c- - 2c0 + c+)``.
 
-    The offset is clipped to half a cell; at the border the integer position is kept.
+    The offset is clipped to half a cell; at the border, or beside a cell without a score
+    (``-inf``), the integer position is kept.
     """
     out = []
     for axis in (0, 1):
@@ -182,7 +199,7 @@ def subpixel_peak(surface: np.ndarray, peak: tuple[int, int]) -> tuple[float, fl
         hi[axis] += 1
         cm, c0, cp = surface[tuple(lo)], surface[tuple(idx)], surface[tuple(hi)]
         denom = cm - 2 * c0 + cp
-        d = 0.0 if denom >= 0 else float(np.clip((cm - cp) / (2 * denom), -0.5, 0.5))
+        d = 0.0 if not (np.isfinite(denom) and denom < 0) else float(np.clip((cm - cp) / (2 * denom), -0.5, 0.5))
         out.append(peak[axis] + d)
     return out[0], out[1]
 

@@ -14,7 +14,7 @@ class Candidate:
 
     shift_x: float
     shift_y: float
-    score: float  # masked NCC weighted by sqrt(overlap fraction)
+    score: float  # match score: atanh(masked NCC) x sqrt(overlap fraction)
     ncc: float
     overlap: float  # fraction of the moving grid's support that overlaps the reference
     source: str  # which surface proposed it: "pomf" or "ncc"

@@ -7,8 +7,10 @@ once. The tie points are gridded on the lattice of the reference grid, whose cel
 cell times ``sigma`` times the pyramid level, so every hypothesis compares like with like.
 
 Levels (tie cells per search cell): 2, a full sweep of heading and scale; 1, local refinement of
-the best distinct candidates. The band-pass keeps the same width on the ground at every level
-(four tie cells): coarser sweeps smooth away what tells the right hypothesis from a wrong one.
+the best distinct candidates. Small blocks (fewer than :data:`SWEEP_MIN_CELLS` cells at level 2)
+are swept at level 1 too: over a few hundred cells a wrong hypothesis correlates by chance as well
+as the right one does. The band-pass keeps the same width on the ground at every level
+(six tie cells): coarser sweeps smooth away what tells the right hypothesis from a wrong one.
 Cost grows with the number of hypotheses, not with the lidar: the reference grids are exact
 aggregations of one prepared base grid.
 """
@@ -23,12 +25,19 @@ import numpy as np
 from ..grid import Grid, GridSpec, rasterize
 from ..reference import Reference
 from ..transform import Transform
-from .correlation import MaskedReference, masked_ncc, shift_of_index, subpixel_peak
+from .correlation import (
+    MaskedReference,
+    masked_ncc,
+    match_score,
+    shift_of_index,
+    subpixel_peak,
+)
 from .preprocess import prepare
 
 MIN_OVERLAP = 0.3
 BANDPASS_TIE_CELLS = 6.0  # band-pass width on the ground, in tie cells, at every level
 MAX_REFERENCE_CELLS = 320  # per side: finer hypotheses (tiny blocks) are not tried
+SWEEP_MIN_CELLS = 1000  # the block's cells at the sweep's level 2, else the sweep is at level 1
 MIN_SUPPORT_CELLS = 50  # correlations over fewer cells are high by chance too often
 RIVAL_KAPPA_DEG, RIVAL_SCALE, RIVAL_SHIFT_TIE_CELLS = 20.0, 1.25, 6.0  # a different answer
 
@@ -41,7 +50,7 @@ class Hypothesis:
     sigma: float  # reference units per model unit
     tx: float
     ty: float
-    score: float  # NCC x sqrt(overlap fraction)
+    score: float  # :func:`~tiereg.coarse.correlation.match_score` of NCC and overlap
     ncc: float
     overlap: float
     level: int
@@ -82,7 +91,7 @@ class Scorer:
 
     def surface(self, kappa: float, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                           GridSpec, Grid] | None:
-        """The score (NCC x sqrt(overlap), -1 where not valid), NCC and overlap at every shift of
+        """The score (:func:`match_score`, -inf where not valid), NCC and overlap at every shift of
         one hypothesis (full-mode surfaces, :mod:`tiereg.coarse.correlation`), with the tie
         points' grid spec and the reference grid (``None``: the hypothesis cannot be scored)."""
         if self.level * self.tie_cell * sigma < self.ref_extent / MAX_REFERENCE_CELLS:
@@ -105,7 +114,8 @@ class Scorer:
         ncc, n = masked_ncc(mref, None, mov.image, mov.support)
         overlap = n / float(mov.support.sum())
         valid = (overlap >= MIN_OVERLAP) & (n >= MIN_SUPPORT_CELLS)
-        score = np.where(valid, ncc * np.sqrt(np.minimum(overlap, 1.0)), -1.0)
+        score = np.full(ncc.shape, -np.inf)
+        score[valid] = match_score(ncc[valid], overlap[valid])
         return score, ncc, overlap, spec, grid
 
     def score(self, kappa: float, sigma: float) -> Hypothesis | None:
@@ -114,7 +124,7 @@ class Scorer:
             return None
         score, ncc, overlap, spec, grid = found
         best = np.unravel_index(int(np.argmax(score)), score.shape)
-        if score[best] <= -1.0:
+        if not np.isfinite(score[best]):
             return None
         c = grid.spec.cell_size
         r, col = subpixel_peak(score, best) if self.level == 1 else best
@@ -165,9 +175,10 @@ def search(
     hypotheses, e.g. from a frequency-domain method, refined like the sweep's own candidates.
     """
     n_hyp = 0
-    sweep_scorer = Scorer(moving, ref, tie_cell, 2, stat="mean")
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
     block_area = float(np.prod(hi - lo))
+    sweep_level = 2 if block_area / (2 * tie_cell) ** 2 >= SWEEP_MIN_CELLS else 1
+    sweep_scorer = Scorer(moving, ref, tie_cell, sweep_level, stat="mean")
     (x0, y0, x1, y1) = ref.base.spec.bounds
     sigma_max = min(sigma_range[1], math.sqrt((x1 - x0) * (y1 - y0) / (MIN_OVERLAP * block_area)))
     n_sigma = max(0, int(math.ceil(math.log(sigma_max / sigma_range[0]) / math.log(sigma_ratio))))

@@ -92,7 +92,7 @@ def _correlation_window(result) -> np.ndarray | None:
     d0 = np.array([(spec.y0 - grid.spec.y0) / -c, (spec.x0 - grid.spec.x0) / c])
     i0 = np.rint(np.array(shift_of_index((0.0, 0.0), spec.shape)) * -1 + d0).astype(int)
     k = WINDOW_CELLS
-    out = np.full((2 * k + 1, 2 * k + 1), -1.0)
+    out = np.full((2 * k + 1, 2 * k + 1), -np.inf)
     r0, c0 = i0[0] - k, i0[1] - k
     rs, cs = max(r0, 0), max(c0, 0)
     re, ce = min(i0[0] + k + 1, score.shape[0]), min(i0[1] + k + 1, score.shape[1])

@@ -158,10 +158,10 @@ def correlation_surface(window: np.ndarray, cell: float, *, units: str) -> bytes
     plt = _pyplot()
     half = (window.shape[0] // 2) * cell
     fig, ax = plt.subplots(figsize=(5.2, 4.4))
-    shown = np.where(window > -1, window, np.nan)
+    shown = np.where(np.isfinite(window), window, np.nan)
     im = ax.imshow(shown, extent=(-half - cell / 2, half + cell / 2, -half - cell / 2,
                                   half + cell / 2), origin="upper", cmap="magma")
-    fig.colorbar(im, ax=ax, label="NCC x sqrt(overlap)")
+    fig.colorbar(im, ax=ax, label="match score: atanh(NCC) x sqrt(overlap)")
     r, c = np.unravel_index(int(np.nanargmax(shown)), shown.shape)
     ax.scatter([(c - window.shape[1] // 2) * cell], [-(r - window.shape[0] // 2) * cell],
                marker="+", s=120, c="cyan", label="peak")
