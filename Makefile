@@ -20,7 +20,7 @@ demo: install
 	$(BIN)/tiereg demo --out demo-output
 
 test: install browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto
 
 # The report's test opens report.html in headless Chromium (Debian package chromium).
 browser:

@@ -285,6 +285,10 @@ def _fmt(v, spec=".2f"):
 
 
 def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: float) -> None:
+    # a peer that could not run anywhere is left out of the tables, and the report says so
+    missing = sorted({o.method for o in outcomes} - {o.method for o in outcomes
+                                                     if "unavailable:" not in o.note})
+    outcomes = [o for o in outcomes if o.method not in missing]
     summary = summarize(outcomes)
     out_dir.mkdir(parents=True, exist_ok=True)
     lines = [
@@ -305,7 +309,9 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
         f"{OPEN3D_EVERY}th case (the counts show how many)",
         f"- correct: heading within {HEADING_TOL_DEG:g} deg, scale within "
         f"{SCALE_TOL:.0%}, block centre within one coarse cell; confidently wrong: marked "
-        "confident and not correct (peers give no confidence)", "",
+        "confident and not correct (peers give no confidence)",
+        *([f"- left out, not installed on this machine: {', '.join(missing)} "
+           "(`make bench-peers` installs the peers)"] if missing else []), "",
         "| method | correct | rate | confidently wrong | confident | negatives rejected | "
         "median heading err (deg) | median scale err (%) | median position err (cells) | "
         "median s/case |",
