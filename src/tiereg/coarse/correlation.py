@@ -199,7 +199,8 @@ def subpixel_peak(surface: np.ndarray, peak: tuple[int, int]) -> tuple[float, fl
         hi[axis] += 1
         cm, c0, cp = surface[tuple(lo)], surface[tuple(idx)], surface[tuple(hi)]
         denom = cm - 2 * c0 + cp
-        d = 0.0 if not (np.isfinite(denom) and denom < 0) else float(np.clip((cm - cp) / (2 * denom), -0.5, 0.5))
+        curved = np.isfinite(denom) and denom < 0
+        d = float(np.clip((cm - cp) / (2 * denom), -0.5, 0.5)) if curved else 0.0
         out.append(peak[axis] + d)
     return out[0], out[1]
 

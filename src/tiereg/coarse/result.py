@@ -14,7 +14,7 @@ class Candidate:
 
     shift_x: float
     shift_y: float
-    score: float  # match score: atanh(masked NCC) x sqrt(overlap fraction)
+    score: float  # the method's ranking: match_score (search), NCC x sqrt(overlap) (pomf)
     ncc: float
     overlap: float  # fraction of the moving grid's support that overlaps the reference
     source: str  # which surface proposed it: "pomf" or "ncc"

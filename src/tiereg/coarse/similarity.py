@@ -217,7 +217,8 @@ def register_similarity(
     rival = found.runner_up.score if found.runner_up is not None else 0.0
     ratio = found.sweep_best.score / rival if rival > 0 else float("inf")
     explained = (residual_ratio <= MAX_RESIDUAL_RATIO and best.ncc >= MIN_NCC_EXPLAINED
-                 and ratio >= MIN_RIVAL_RATIO_EXPLAINED and best.overlap >= MIN_OVERLAP_EXPLAINED)
+                 and ratio >= MIN_RIVAL_RATIO_EXPLAINED
+                 and best.overlap >= MIN_OVERLAP_EXPLAINED)
     if method in CANDIDATE_METHODS and not explained:
         # a few candidates say nothing about the hypotheses never tried: the heights must be
         # explained, a rival ratio among candidates is not evidence
