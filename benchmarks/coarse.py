@@ -291,9 +291,11 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
     outcomes = [o for o in outcomes if o.method not in missing]
     summary = summarize(outcomes)
     out_dir.mkdir(parents=True, exist_ok=True)
+    meta = {**meta, "date": datetime.datetime.now(datetime.timezone.utc).isoformat(
+        timespec="seconds")}
     lines = [
         "# Coarse-registration benchmark", "",
-        f"- date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}; "
+        f"- date: {meta['date']}; "
         f"machine: {platform.machine()}, Python {platform.python_version()}; "
         f"total run time {seconds / 60:.1f} min",
         "- scenes: " + ", ".join(f"{k} ({v['tie_points']} tie points, "
@@ -307,6 +309,9 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
         f"- tiereg {' and '.join(FULL_METHODS)} and the image peers run on every case; the other "
         f"tiereg methods on every {SAMPLE_EVERY}rd case and the negative cases, Open3D on every "
         f"{OPEN3D_EVERY}th case (the counts show how many)",
+        *([f"- re-run this time: {', '.join(sorted({o.method for o in outcomes} - set(kept)))}; "
+           f"kept from the run of {meta['kept']['from']}: {', '.join(kept)}"]
+          if (kept := meta.get("kept", {}).get("methods")) else []),
         f"- correct: heading within {HEADING_TOL_DEG:g} deg, scale within "
         f"{SCALE_TOL:.0%}, block centre within one coarse cell; confidently wrong: marked "
         "confident and not correct (peers give no confidence)",
@@ -349,6 +354,24 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
                                                      "outcomes": raw}, indent=1,
                                                     default=_json_number) + "\n")
     plot(outcomes, out_dir / "coarse.png")
+
+
+def keep_others(outcomes: list[Outcome], path: Path) -> tuple[list[Outcome], dict]:
+    """The new outcomes, and those of the methods they lack from an earlier run's JSON."""
+    last = json.loads(path.read_text())
+    ran = {o.method for o in outcomes}
+    kept = [Outcome(r["method"], Case(r["scene"], r["case"],
+                                      HiddenTransform(heading_deg=r["heading_deg"],
+                                                      scale=r["scale"]),
+                                      r["overlap"], r["negative"]),
+                    r["correct"], r["confident"], r["heading_err_deg"], r["scale_err"],
+                    r["horiz_err_cells"], r["seconds"], r["note"])
+            for r in last["outcomes"] if r["method"] not in ran]
+    methods = sorted({o.method for o in kept})
+    date = last["meta"].get("date") or next(  # results written before the JSON kept the date
+        (line.split(";")[0].removeprefix("- date: ") for line in
+         path.with_suffix(".md").read_text().splitlines() if line.startswith("- date: ")), "?")
+    return outcomes + kept, {"methods": methods, "from": date}
 
 
 def _json_number(o):
@@ -395,10 +418,15 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="scenes run in parallel")
     parser.add_argument("--methods", default=",".join(TIEREG_METHODS),
                         help="tiereg coarse methods, comma-separated")
+    parser.add_argument("--keep-others", action="store_true",
+                        help="methods not run this time keep their outcomes from the last "
+                             "results (after a change that touches only the methods run)")
     args = parser.parse_args()
     t0 = time.perf_counter()
     outcomes, meta = run(args.quick, with_open3d=not args.no_open3d, workers=args.workers,
                          methods=tuple(args.methods.split(",")))
+    if args.keep_others:
+        outcomes, meta["kept"] = keep_others(outcomes, RESULTS / "coarse.json")
     write_report(outcomes, meta, WORK if args.quick else RESULTS, time.perf_counter() - t0)
     print((WORK if args.quick else RESULTS) / "coarse.md")
 

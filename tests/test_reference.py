@@ -31,6 +31,22 @@ def test_aggregation_equals_gridding_at_the_coarse_cell(rng, k):
     assert np.allclose(coarse["mean"][:r, :c], direct["mean"], equal_nan=True, atol=1e-9)
 
 
+@pytest.mark.parametrize("k", [1, 3])
+def test_aggregated_max_is_the_highest_base_cell_of_each_block(rng, k):
+    xyz = np.column_stack([rng.uniform(-103, 97, 3000), rng.uniform(-51, 149, 3000),
+                           rng.normal(50, 10, 3000)])
+    base = rasterize(xyz, GridSpec.from_bounds(-103, -51, 97, 149, 5.0), stats=("mean",))
+    coarse = aggregate(base, k)
+    expected = np.full(coarse.count.shape, np.nan)
+    rows, cols = np.nonzero(base.mask)
+    x, y = base.spec.xy(rows, cols)
+    cr = np.floor((coarse.spec.y0 - y) / coarse.spec.cell_size).astype(int)
+    cc = np.floor((x - coarse.spec.x0) / coarse.spec.cell_size).astype(int)
+    for r, c, z in zip(cr, cc, base["mean"][rows, cols]):  # slow and obvious
+        expected[r, c] = z if np.isnan(expected[r, c]) else max(expected[r, c], z)
+    assert np.array_equal(coarse["max"], expected, equal_nan=True)
+
+
 def test_first_returns_only(tmp_path):
     header = laspy.LasHeader(version="1.4", point_format=6)
     header.scales = np.array([0.01, 0.01, 0.01])

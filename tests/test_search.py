@@ -92,3 +92,57 @@ def test_moments_recovers_a_suburb_and_never_claims_what_it_cannot_explain():
                    and abs(est.scale / true.scale - 1) < 0.02 and np.hypot(*err[0, :2]) < 40.0)
         assert correct or not result.confident
         assert correct, f"heading {heading}, scale {scale}: {result.reasons}"
+
+
+@pytest.fixture(scope="module")
+def farmland():
+    """Flat fields with scattered trees and farmsteads, the block level and unscaled."""
+    small = dict(world_size_m=3000.0, lidar_size_m=2700.0, block=ImageBlock(side_m=2400.0),
+                 survey=LidarSurvey(density_per_m2=0.3))
+    hidden = HiddenTransform(heading_deg=0.0, scale=1.0, tilt_deg=(0.1, -0.1),
+                             model_origin=(25_000.0, -40_000.0, 120.0))
+    world = make_world("farmland", size_m=3000.0, seed=4)
+    scene = make_scene(SceneSpec(kind="farmland", seed=4, hidden=hidden, overlap=0.9, **small),
+                       world=world)
+    ref = prepare_reference(ArraySource(PointSet(scene.lidar.xyz)), base_cell=5.0)
+    return scene, ref
+
+
+def test_what_stands_on_flat_ground_decides_where_the_heights_cannot(farmland):
+    import math
+
+    from tiereg.coarse.search import HEIGHTS, OBJECTS, search
+    from tiereg.grid import cell_size_from_density
+    from tiereg.transform import Transform
+
+    scene, ref = farmland
+    o_mov = np.round(scene.moving.mean(axis=0))
+    moving = scene.moving - o_mov
+    tie_cell = cell_size_from_density(moving)
+    true = (Transform.from_translation(-ref.origin) @ scene.T_ref_mov
+            @ Transform.from_translation(o_mov)).parameters()
+    found = {}
+    for channel in (HEIGHTS, OBJECTS):  # scales within 1.5x of the truth keep the test short
+        f = search(moving, ref, tie_cell=tie_cell, channel=channel,
+                   sigma_range=(true.scale / 1.5, true.scale * 1.5))
+        found[channel.name] = (f.best, f.sweep_best.score / f.runner_up.score)
+    best, ratio = found["objects"]
+    assert abs((math.degrees(best.kappa - true.kappa) + 180) % 360 - 180) < 0.5  # degrees
+    assert best.sigma / true.scale == pytest.approx(1.0, abs=0.02)  # search steps of 1 %
+    cells = math.hypot(best.tx - true.translation[0], best.ty - true.translation[1]) / tie_cell
+    assert cells < 0.25  # tie cells
+    assert ratio >= 1.25  # a peak that stands out: confident by the rival ratio alone
+    assert found["heights"][1] < 1.25  # which the heights alone do not give here
+
+
+def test_auto_registers_flat_farmland_by_what_stands_on_it(farmland):
+    scene, ref = farmland
+    result = register(scene.moving, ref, coarse="auto", fine="none")
+    est, true = result.T_ref_mov.parameters(), scene.T_ref_mov.parameters()
+    assert result.confident, result.reasons
+    assert result.coarse.details["channel"] == "objects"
+    assert abs((np.degrees(est.kappa - true.kappa) + 180) % 360 - 180) < 0.5  # degrees
+    assert est.scale / true.scale == pytest.approx(1.0, abs=0.005)
+    centre = scene.moving.mean(axis=0, keepdims=True)
+    err = result.T_ref_mov.apply(centre) - scene.T_ref_mov.apply(centre)
+    assert np.hypot(*err[0, :2]) < 0.25 * 40.0  # a quarter of the 40 m tie cell

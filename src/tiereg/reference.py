@@ -49,7 +49,8 @@ class Reference:
         return point_spacing(self.source)
 
     def grid(self, cell_size: float) -> Grid:
-        """The mean grid at ``k`` base cells, ``k = max(1, round(cell_size / base_cell))``.
+        """The mean (and ``max``, :func:`aggregate`) grid at ``k`` base cells,
+        ``k = max(1, round(cell_size / base_cell))``.
 
         The returned grid's ``spec.cell_size`` is the cell actually used; its corner is snapped to
         a multiple of that cell, like :meth:`GridSpec.from_bounds`.
@@ -74,9 +75,15 @@ def _chunks(source: PointSource, first_only: bool) -> Iterator[np.ndarray]:
 
 
 def aggregate(grid: Grid, k: int) -> Grid:
-    """Exact mean grid over blocks of ``k x k`` cells (sums and counts), corner snapped to ``k``."""
+    """Exact mean grid over blocks of ``k x k`` cells (sums and counts), corner snapped to ``k``.
+
+    Beside the ``mean``, ``max`` is the highest base-cell mean of each block: the top of whatever
+    stands in the cell (a tree, a farmstead), which the mean of a coarse cell averages away.
+    """
     if k == 1:
-        return grid
+        if "max" in grid.stats:
+            return grid
+        return Grid(grid.spec, grid.count, {**grid.stats, "max": grid["mean"]}, grid.crs_wkt)
     spec = grid.spec
     c = spec.cell_size
     big = k * c
@@ -91,11 +98,15 @@ def aggregate(grid: Grid, k: int) -> Grid:
     sl = (slice(pad_r, pad_r + spec.shape[0]), slice(pad_c, pad_c + spec.shape[1]))
     count[sl] = grid.count
     total[sl] = np.where(grid.count > 0, grid["mean"] * grid.count, 0.0)
+    top = np.full((rows * k, cols * k), -np.inf)
+    top[sl] = np.where(grid.count > 0, grid["mean"], -np.inf)
     count = count.reshape(rows, k, cols, k).sum(axis=(1, 3))
     total = total.reshape(rows, k, cols, k).sum(axis=(1, 3))
+    top = top.reshape(rows, k, cols, k).max(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(count > 0, total / count, np.nan)
-    return Grid(GridSpec(x0, y0, big, (rows, cols)), count, {"mean": mean}, grid.crs_wkt)
+    return Grid(GridSpec(x0, y0, big, (rows, cols)), count,
+                {"mean": mean, "max": np.where(count > 0, top, np.nan)}, grid.crs_wkt)
 
 
 def point_spacing(source: PointSource) -> float:

@@ -13,6 +13,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..grid import fill_normalized
+from ..robust import nmad
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,8 +45,14 @@ def prepare(
     *,
     fill_sigma_cells: float = 1.0,
     bandpass_sigma_cells: float = 4.0,
+    clip_nmad: float = 0.0,
 ) -> Prepared:
-    """Detrend, fill (normalized convolution), band-pass (DoG) and zero outside the support."""
+    """Detrend, fill (normalized convolution), band-pass (DoG) and zero outside the support.
+
+    ``clip_nmad > 0`` clips the band-passed values at that many NMADs of the support's values
+    (winsorizing): then every object counts by where it stands, not by how tall it is, and a
+    few tall ones cannot outweigh the many that agree.
+    """
     mask = np.asarray(mask, bool) & np.isfinite(values)
     flat = detrend_plane(np.where(mask, values, 0.0), mask)
     filled, support = fill_normalized(flat, mask, sigma_cells=fill_sigma_cells)
@@ -58,4 +65,7 @@ def prepare(
     image = np.where(support, image, 0.0)
     support = ndimage.binary_opening(support) if support.sum() > 50 else support
     image = np.where(support, image, 0.0)
+    if clip_nmad > 0 and support.sum() > 10:
+        bound = clip_nmad * nmad(image[support])
+        image = np.where(support, np.clip(image, -bound, bound), 0.0)
     return Prepared(image, support)
