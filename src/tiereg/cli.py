@@ -208,7 +208,11 @@ def _summary(result) -> str:
     p = result.T_ref_mov.parameters()
     d = p.to_dict()
     units = result.inputs.units
-    stages = [f"coarse {result.coarse.method}" if result.coarse else "no coarse stage"]
+    stages = ["no coarse stage"]
+    if result.coarse:
+        channel = result.coarse.details.get("channel")  # by heights, or by what stands on them
+        stages = [f"coarse {result.coarse.method}" + (" on objects" if channel == "objects"
+                                                      else "")]
     if result.fine is not None:
         stages.append(f"fine {result.fine.method} ({result.fine.model})")
     lines = [
