@@ -36,7 +36,7 @@ def test_aggregated_max_is_the_highest_base_cell_of_each_block(rng, k):
     xyz = np.column_stack([rng.uniform(-103, 97, 3000), rng.uniform(-51, 149, 3000),
                            rng.normal(50, 10, 3000)])
     base = rasterize(xyz, GridSpec.from_bounds(-103, -51, 97, 149, 5.0), stats=("mean",))
-    coarse = aggregate(base, k)
+    coarse = aggregate(base, k, stats=("mean", "max"))
     expected = np.full(coarse.count.shape, np.nan)
     rows, cols = np.nonzero(base.mask)
     x, y = base.spec.xy(rows, cols)

@@ -48,18 +48,19 @@ class Reference:
         """Mean point spacing of the reference (square root of area per point)."""
         return point_spacing(self.source)
 
-    def grid(self, cell_size: float) -> Grid:
-        """The mean (and ``max``, :func:`aggregate`) grid at ``k`` base cells,
-        ``k = max(1, round(cell_size / base_cell))``.
+    def grid(self, cell_size: float, *, stats: tuple[str, ...] = ("mean",)) -> Grid:
+        """The grid at ``k`` base cells, ``k = max(1, round(cell_size / base_cell))``, with the
+        ``mean`` and the other ``stats`` asked for (``max``, :func:`aggregate`).
 
         The returned grid's ``spec.cell_size`` is the cell actually used; its corner is snapped to
         a multiple of that cell, like :meth:`GridSpec.from_bounds`.
         """
         k = max(1, int(round(cell_size / self.base_cell)))
-        if k not in self._cache:
-            self._cache[k] = aggregate(self.base, k)
+        cached = self._cache.get(k)
+        if cached is None or not set(stats) <= set(cached.stats):
+            wanted = tuple({*stats, *(cached.stats if cached else ())})
+            self._cache[k] = aggregate(self.base, k, stats=wanted)
         return self._cache[k]
-
 
     def local_chunks(self) -> Iterator[np.ndarray]:
         """The reference points again, chunk by chunk, in local coordinates (first returns when
@@ -74,14 +75,14 @@ def _chunks(source: PointSource, first_only: bool) -> Iterator[np.ndarray]:
     return source.chunks()
 
 
-def aggregate(grid: Grid, k: int) -> Grid:
+def aggregate(grid: Grid, k: int, *, stats: tuple[str, ...] = ("mean",)) -> Grid:
     """Exact mean grid over blocks of ``k x k`` cells (sums and counts), corner snapped to ``k``.
 
-    Beside the ``mean``, ``max`` is the highest base-cell mean of each block: the top of whatever
+    ``"max"`` in ``stats`` adds the highest base-cell mean of each block: the top of whatever
     stands in the cell (a tree, a farmstead), which the mean of a coarse cell averages away.
     """
     if k == 1:
-        if "max" in grid.stats:
+        if "max" not in stats or "max" in grid.stats:
             return grid
         return Grid(grid.spec, grid.count, {**grid.stats, "max": grid["mean"]}, grid.crs_wkt)
     spec = grid.spec
@@ -98,15 +99,16 @@ def aggregate(grid: Grid, k: int) -> Grid:
     sl = (slice(pad_r, pad_r + spec.shape[0]), slice(pad_c, pad_c + spec.shape[1]))
     count[sl] = grid.count
     total[sl] = np.where(grid.count > 0, grid["mean"] * grid.count, 0.0)
-    top = np.full((rows * k, cols * k), -np.inf)
-    top[sl] = np.where(grid.count > 0, grid["mean"], -np.inf)
     count = count.reshape(rows, k, cols, k).sum(axis=(1, 3))
     total = total.reshape(rows, k, cols, k).sum(axis=(1, 3))
-    top = top.reshape(rows, k, cols, k).max(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0, total / count, np.nan)
-    return Grid(GridSpec(x0, y0, big, (rows, cols)), count,
-                {"mean": mean, "max": np.where(count > 0, top, np.nan)}, grid.crs_wkt)
+        out = {"mean": np.where(count > 0, total / count, np.nan)}
+    if "max" in stats:
+        top = np.full((rows * k, cols * k), -np.inf)
+        top[sl] = np.where(grid.count > 0, grid["mean"], -np.inf)
+        top = top.reshape(rows, k, cols, k).max(axis=(1, 3))
+        out["max"] = np.where(count > 0, top, np.nan)
+    return Grid(GridSpec(x0, y0, big, (rows, cols)), count, out, grid.crs_wkt)
 
 
 def point_spacing(source: PointSource) -> float:

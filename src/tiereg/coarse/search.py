@@ -103,7 +103,7 @@ class Scorer:
     def reference(self, sigma: float) -> tuple[Grid, MaskedReference, float]:
         """The prepared reference grid for ``sigma`` and its band-pass width in cells."""
         cell = max(self.level * self.tie_cell * sigma, self.ref.base_cell)
-        grid = self.ref.grid(cell)
+        grid = self.ref.grid(cell, stats=(self.channel.reference_stat,))
         key = grid.spec.cell_size
         if key not in self._refs:
             bandpass = BANDPASS_TIE_CELLS * self.tie_cell * sigma / key

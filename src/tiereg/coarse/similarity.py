@@ -214,7 +214,8 @@ def register_similarity(
                             0.0, (), ("no heading and scale in the searched range makes the tie "
                                       f"points overlap the reference by {MIN_OVERLAP:.0%}",),
                             time.perf_counter() - t0)
-    result = judge(moving_xyz, reference, found, method=method, tie_cell=tie_cell, extra=extra)
+    sampler = SurfaceSampler.from_grid(reference.base)  # the finest surface, for both channels
+    result = judge(moving_xyz, sampler, found, method=method, tie_cell=tie_cell, extra=extra)
     if method == "search" and not result.confident:
         # the heights did not decide: what stands on the ground may (flat farmland)
         try:
@@ -223,7 +224,7 @@ def register_similarity(
         except NoOverlap:
             objects = None
         if objects is not None:
-            second = judge(moving_xyz, reference, objects, method=method, tie_cell=tie_cell,
+            second = judge(moving_xyz, sampler, objects, method=method, tie_cell=tie_cell,
                            extra=extra, channel=OBJECTS)
             # neither confident: the heights' answer stands (taking the more distinct of the two
             # peaks lost two right answers on the benchmark and gained none)
@@ -235,7 +236,7 @@ def register_similarity(
 
 def judge(
     moving_xyz: np.ndarray,
-    reference: Reference,
+    sampler: SurfaceSampler,
     found: SearchResult,
     *,
     method: str,
@@ -243,12 +244,12 @@ def judge(
     extra: dict | None = None,
     channel: Channel = HEIGHTS,
 ) -> CoarseResult:
-    """The refined pose of a search's answer and whether to trust it (module docstring, 2-3)."""
+    """The refined pose of a search's answer against the reference surface ``sampler``, and
+    whether to trust it (module docstring, 2-3)."""
     t0 = time.perf_counter()
     extra = extra or {}
     trust = TRUST[channel.name]
     best = found.best
-    sampler = SurfaceSampler.from_grid(reference.base)
     cell = tie_cell * best.sigma
     fit = refine_pose(moving_xyz, sampler, best, cell)
     kappa, log_sigma, tx, ty, omega, phi = fit.params
