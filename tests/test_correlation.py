@@ -47,6 +47,29 @@ def test_masked_ncc_equals_the_slow_reference(rng):
     assert np.allclose(ncc, ref, atol=1e-9)
 
 
+def test_masked_ncc_valid_mode_is_the_full_surface_where_the_moving_image_stays_inside(rng):
+    fr, fm = rng.normal(size=(12, 14)), rng.normal(size=(6, 5))
+    mr, mm = rng.random((12, 14)) > 0.3, rng.random((6, 5)) > 0.4
+    ncc, n = masked_ncc(fr, mr, fm, mm, mode="valid")
+    ref, count = slow_masked_ncc(fr, mr, fm, mm)
+    inside = (slice(6 - 1, 12), slice(5 - 1, 14))  # shifts 0 .. Hr - Hm, 0 .. Wr - Wm
+    assert ncc.shape == (12 - 6 + 1, 14 - 5 + 1)
+    assert np.array_equal(n, count[inside])
+    assert np.allclose(ncc, ref[inside], atol=1e-9)
+    assert shift_of_index((2, 3), fm.shape, mode="valid") == (2, 3)
+
+
+def test_masked_ncc_of_a_stack_is_each_image_alone(rng):
+    fr, mr = rng.normal(size=(20, 18)), rng.random((20, 18)) > 0.2
+    fm, mm = rng.normal(size=(3, 7, 9)), rng.random((3, 7, 9)) > 0.5
+    fm[1] *= 1e3  # a tolerance per image, not one for the stack
+    ncc, n = masked_ncc(fr, mr, fm, mm)
+    for k in range(3):
+        one, n_one = masked_ncc(fr, mr, fm[k], mm[k])
+        assert np.array_equal(n[k], n_one)
+        assert np.allclose(ncc[k], one, atol=1e-12)
+
+
 def test_masked_ncc_finds_a_known_shift_under_a_sparse_mask(rng):
     ref = rng.normal(size=(60, 70))
     mov = ref[12:42, 20:45].copy()  # moving pixel (r, c) sits at reference (r + 12, c + 20)

@@ -57,6 +57,35 @@ def test_tie_points_from_elsewhere_are_not_confident(mountains):
     assert any("fits almost as well" in r or "weak correlation" in r for r in result.reasons)
 
 
+def test_scores_near_a_position_are_the_full_surfaces_scores_there(mountains):
+    """The local refinement's window (valid mode) against the full surface, shift by shift, and
+    a stack of headings against each heading alone."""
+    from tiereg.coarse.search import WINDOW_CELLS, Scorer
+
+    spec, world, ref = mountains
+    hidden = HiddenTransform(heading_deg=40.0, scale=1.0, model_origin=(0.0, 0.0, 0.0))
+    scene = make_scene(SceneSpec(kind="mountains", seed=3, hidden=hidden, overlap=0.8, **SMALL),
+                       world=world)
+    moving = scene.moving - scene.moving.mean(axis=0)
+    scorer = Scorer(moving, ref, 40.0, 1)
+    kappas = [np.radians(-40.0), np.radians(-37.0)]
+    full = scorer.surfaces(kappas, 1.0)
+    alone = scorer.surface(kappas[1], 1.0)
+    assert np.allclose(full[1].score, alone.score, equal_nan=True)
+    best = scorer.score(kappas[0], 1.0)
+    near = scorer.surfaces(kappas, 1.0, near=(best.tx + 70.0, best.ty - 50.0))
+    for f, w in zip(full, near):
+        assert w.score.shape[0] >= 2 * WINDOW_CELLS + 1
+        rows, cols = np.indices(w.score.shape)
+        idx = np.array([f.index_of(*w.translation((i, j)))
+                        for i, j in zip(rows.ravel(), cols.ravel())])
+        assert np.allclose(idx, np.rint(idx))  # the window's shifts are the full lattice's
+        i, j = np.rint(idx).astype(int).T
+        assert np.allclose(w.score.ravel(), f.score[i, j], atol=1e-9)
+    local = scorer.score_many(kappas[:1], 1.0, near=(best.tx + 70.0, best.ty - 50.0))[0]
+    assert (local.tx, local.ty, local.score) == pytest.approx((best.tx, best.ty, best.score))
+
+
 @pytest.mark.parametrize("angle_deg", [30.0, 120.0])
 def test_spectral_orientation_of_stripes(angle_deg):
     from tiereg.coarse.moments import spectral_orientation

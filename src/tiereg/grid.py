@@ -330,12 +330,14 @@ def fill_normalized(
 
     ``f = (G * (g m)) / (G * m)`` with a Gaussian ``G`` of ``sigma_cells``; cells where the
     smoothed mask ``G * m`` is below ``min_support`` stay unsupported. Returns ``(filled,
-    support)``; ``filled`` is 0 outside the support.
+    support)``; ``filled`` is 0 outside the support. A stack ``(..., rows, cols)`` is filled
+    image by image.
     """
     m = np.asarray(mask, dtype=np.float64)
     g = np.where(mask, np.nan_to_num(np.asarray(values, dtype=np.float64)), 0.0)
-    num = ndimage.gaussian_filter(g * m, sigma_cells, mode="constant", truncate=3.0)
-    den = ndimage.gaussian_filter(m, sigma_cells, mode="constant", truncate=3.0)
+    sigma = (0.0,) * (g.ndim - 2) + (sigma_cells, sigma_cells)  # a stack: each image alone
+    num = ndimage.gaussian_filter(g * m, sigma, mode="constant", truncate=3.0)
+    den = ndimage.gaussian_filter(m, sigma, mode="constant", truncate=3.0)
     support = den > min_support
     filled = np.zeros_like(g)
     filled[support] = num[support] / den[support]

@@ -1,9 +1,13 @@
 """Correlation kernels: the one home of phase correlation and masked normalized correlation.
 
-All surfaces here are in *full* mode: for a reference image of shape ``(Hr, Wr)`` and a moving
-image of shape ``(Hm, Wm)`` the surface has shape ``(Hr + Hm - 1, Wr + Wm - 1)`` and index
-``(i, j)`` stands for the shift ``u = (i - (Hm - 1), j - (Wm - 1))``: moving pixel ``p`` lands on
-reference pixel ``p + u``. Zero padding to that size means no circular wrap-around.
+Surfaces are in *full* mode unless asked otherwise: for a reference image of shape ``(Hr, Wr)``
+and a moving image of shape ``(Hm, Wm)`` the surface has shape ``(Hr + Hm - 1, Wr + Wm - 1)`` and
+index ``(i, j)`` stands for the shift ``u = (i - (Hm - 1), j - (Wm - 1))``: moving pixel ``p``
+lands on reference pixel ``p + u``. Zero padding to that size means no circular wrap-around.
+In *valid* mode (a reference at least as large as the moving image, e.g. a window around a
+known position) only the shifts that keep the moving image inside the reference are computed:
+shape ``(Hr - Hm + 1, Wr - Wm + 1)``, index ``(i, j)`` is the shift ``u = (i, j)``, and transforms
+of ``(Hr, Wr)`` suffice, since those shifts never wrap around.
 """
 
 from __future__ import annotations
@@ -16,24 +20,40 @@ from scipy import fft, ndimage
 _EPS = 100 * np.finfo(np.float64).eps
 
 
-def full_shape(ref_shape: tuple[int, int], mov_shape: tuple[int, int]) -> tuple[int, int]:
+Mode = Literal["full", "valid"]
+
+
+def surface_shape(ref_shape: tuple[int, int], mov_shape: tuple[int, int], *,
+                  mode: Mode = "full") -> tuple[int, int]:
+    if mode == "valid":
+        return (ref_shape[0] - mov_shape[0] + 1, ref_shape[1] - mov_shape[1] + 1)
     return (ref_shape[0] + mov_shape[0] - 1, ref_shape[1] + mov_shape[1] - 1)
 
 
 def shift_of_index(
-    index: tuple[float, float], mov_shape: tuple[int, int]
+    index: tuple[float, float], mov_shape: tuple[int, int], *, mode: Mode = "full"
 ) -> tuple[float, float]:
-    """Full-mode surface index -> shift ``(d_row, d_col)`` of the moving image."""
+    """Surface index -> shift ``(d_row, d_col)`` of the moving image."""
+    if mode == "valid":
+        return (index[0], index[1])
     return (index[0] - (mov_shape[0] - 1), index[1] - (mov_shape[1] - 1))
 
 
 class _Correlator:
-    """Cross-correlations ``sum_p a(p + u) b(p)`` of many image pairs of two fixed shapes."""
+    """Cross-correlations ``sum_p a(p + u) b(p)`` of many image pairs of two fixed shapes.
 
-    def __init__(self, ref_shape: tuple[int, int], mov_shape: tuple[int, int]):
-        self.ref_shape, self.mov_shape = ref_shape, mov_shape
-        self.full = full_shape(ref_shape, mov_shape)
-        self.fft_shape = tuple(fft.next_fast_len(n, real=True) for n in self.full)
+    Images may be stacks ``(..., rows, cols)``: the transforms run over the last two axes.
+    """
+
+    def __init__(self, ref_shape: tuple[int, int], mov_shape: tuple[int, int], *,
+                 mode: Mode = "full"):
+        if mode == "valid" and (ref_shape[0] < mov_shape[0] or ref_shape[1] < mov_shape[1]):
+            raise ValueError(f"valid mode needs a reference ({ref_shape}) at least as large as "
+                             f"the moving image ({mov_shape})")
+        self.ref_shape, self.mov_shape, self.mode = ref_shape, mov_shape, mode
+        self.out = surface_shape(ref_shape, mov_shape, mode=mode)
+        span = ref_shape if mode == "valid" else self.out
+        self.fft_shape = tuple(fft.next_fast_len(n, real=True) for n in span)
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
         return fft.rfft2(image, s=self.fft_shape)
@@ -43,9 +63,11 @@ class _Correlator:
         return self.to_full(circ)
 
     def to_full(self, circ: np.ndarray) -> np.ndarray:
+        if self.mode == "valid":
+            return circ[..., : self.out[0], : self.out[1]]
         hm, wm = self.mov_shape
-        rolled = np.roll(circ, (hm - 1, wm - 1), axis=(0, 1))
-        return rolled[: self.full[0], : self.full[1]]
+        rolled = np.roll(circ, (hm - 1, wm - 1), axis=(-2, -1))
+        return rolled[..., : self.out[0], : self.out[1]]
 
 
 def cross_power_correlation(
@@ -97,6 +119,8 @@ def masked_ncc(
     reference_mask: np.ndarray | None,
     moving: np.ndarray,
     moving_mask: np.ndarray,
+    *,
+    mode: Mode = "full",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Masked normalized cross-correlation at every shift (Padfield 2012, IEEE TIP 21(5)).
 
@@ -109,12 +133,15 @@ def masked_ncc(
 
     Shifts with fewer than 3 common cells get ``ncc = 0``. ``reference`` may be a
     :class:`MaskedReference` (then ``reference_mask`` is ignored) to reuse its spectra.
+    ``moving`` and ``moving_mask`` may be a stack ``(k, rows, cols)`` of images of one shape
+    (say, one per heading): then the surfaces are ``(k, ...)``, each as if computed alone.
+    ``mode``: ``"full"`` or ``"valid"`` (module docstring).
     """
     ref = reference if isinstance(reference, MaskedReference) else MaskedReference(
         reference, reference_mask)
     mm = np.asarray(moving_mask, dtype=np.float64)
     fm = np.where(mm > 0, moving, 0.0)
-    corr = _Correlator(ref.shape, fm.shape)
+    corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode)
     s_fr, s_mr, s_fr2 = ref.spectra(corr)
     s_fm, s_mm = corr.spectrum(fm), corr.spectrum(mm)
     n = np.round(corr.correlate(s_mr, s_mm))
@@ -129,7 +156,8 @@ def masked_ncc(
         var_r = np.maximum(sum_rr - sum_r**2 / n_safe, 0.0)
         var_m = np.maximum(sum_mm - sum_m**2 / n_safe, 0.0)
         denom = np.sqrt(var_r * var_m)
-        tol = 1e3 * np.finfo(np.float64).eps * np.maximum(np.abs(sum_rr).max(), 1.0)
+        peak_rr = np.abs(sum_rr).max(axis=(-2, -1), keepdims=True)
+        tol = 1e3 * np.finfo(np.float64).eps * np.maximum(peak_rr, 1.0)
         ncc = np.where((n >= 3) & (denom > tol), num / np.where(denom > 0, denom, 1.0), 0.0)
     return np.clip(ncc, -1.0, 1.0), n
 

@@ -25,18 +25,29 @@ class Prepared:
 
 
 def detrend_plane(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Subtract the least-squares plane ``z = a + b*row + c*col`` fitted to the valid cells."""
-    rows, cols = np.nonzero(mask)
-    out = np.zeros_like(values, dtype=np.float64)
-    if len(rows) < 3:
-        return out
-    a = np.column_stack([np.ones(len(rows)), rows, cols]).astype(np.float64)
-    z = values[rows, cols]
-    coef, *_ = np.linalg.lstsq(a, z - z.mean(), rcond=None)
-    rr, cc = np.indices(values.shape)
-    plane = coef[0] + coef[1] * rr + coef[2] * cc + z.mean()
-    out[mask] = (values - plane)[mask]
-    return out
+    """Subtract the least-squares plane ``z = a + b*row + c*col`` fitted to the valid cells.
+
+    ``values`` and ``mask`` are ``(..., rows, cols)``: each image of a stack gets its own plane.
+    Images with fewer than 3 valid cells come back as zeros.
+    """
+    mask = np.asarray(mask, bool)
+    values = np.where(mask, values, 0.0).astype(np.float64)
+    rows, cols = values.shape[-2:]
+    # row and column about the image centre keep the normal equations well conditioned
+    r = (np.arange(rows, dtype=np.float64) - 0.5 * (rows - 1))[:, None]
+    c = (np.arange(cols, dtype=np.float64) - 0.5 * (cols - 1))[None, :]
+    m = mask.astype(np.float64)
+    basis = [np.broadcast_to(b, (rows, cols)) for b in (1.0, r, c)]
+    axes = (-2, -1)
+    AtA = np.stack([np.stack([(m * bi * bj).sum(axis=axes) for bj in basis], -1)
+                    for bi in basis], -2)
+    Atz = np.stack([(values * bi).sum(axis=axes) for bi in basis], -1)
+    # the pseudo-inverse gives lstsq's minimum-norm plane when the valid cells are collinear
+    coef = np.einsum("...ij,...j->...i", np.linalg.pinv(AtA), Atz)
+    plane = (coef[..., 0, None, None] + coef[..., 1, None, None] * r
+             + coef[..., 2, None, None] * c)
+    enough = (m.sum(axis=axes) >= 3)[..., None, None]
+    return np.where(mask & enough, values - plane, 0.0)
 
 
 def prepare(
@@ -51,10 +62,11 @@ def prepare(
 
     ``clip_nmad > 0`` clips the band-passed values at that many NMADs of the support's values
     (winsorizing): then every object counts by where it stands, not by how tall it is, and a
-    few tall ones cannot outweigh the many that agree.
+    few tall ones cannot outweigh the many that agree. ``values`` and ``mask`` may be stacks
+    ``(..., rows, cols)``; each image is prepared on its own, as if alone.
     """
     mask = np.asarray(mask, bool) & np.isfinite(values)
-    flat = detrend_plane(np.where(mask, values, 0.0), mask)
+    flat = detrend_plane(values, mask)
     filled, support = fill_normalized(flat, mask, sigma_cells=fill_sigma_cells)
     if bandpass_sigma_cells > 0:
         low, _ = fill_normalized(filled, support, sigma_cells=bandpass_sigma_cells,
@@ -62,10 +74,15 @@ def prepare(
         image = filled - low
     else:
         image = filled
+    n_support = support.sum(axis=(-2, -1), keepdims=True)
+    cross = ndimage.generate_binary_structure(2, 1).reshape((1,) * (support.ndim - 2) + (3, 3))
+    support = np.where(n_support > 50, ndimage.binary_opening(support, cross), support)
     image = np.where(support, image, 0.0)
-    support = ndimage.binary_opening(support) if support.sum() > 50 else support
-    image = np.where(support, image, 0.0)
-    if clip_nmad > 0 and support.sum() > 10:
-        bound = clip_nmad * nmad(image[support])
-        image = np.where(support, np.clip(image, -bound, bound), 0.0)
+    if clip_nmad > 0:
+        images, supports = image.reshape(-1, *image.shape[-2:]), support.reshape(
+            -1, *support.shape[-2:])
+        bound = np.array([clip_nmad * nmad(one[sup]) if sup.sum() > 10 else np.inf
+                          for one, sup in zip(images, supports)])
+        bound = bound.reshape(image.shape[:-2] + (1, 1))
+        image = np.clip(image, -bound, bound)
     return Prepared(image, support)

@@ -18,19 +18,25 @@ aggregations of one prepared base grid.
 from __future__ import annotations
 
 import math
+import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..errors import InputError
 from ..grid import Grid, GridSpec, rasterize
+from ..parallel import map_threads
 from ..reference import Reference
 from ..transform import Transform
 from .correlation import (
     MaskedReference,
+    Mode,
     masked_ncc,
     match_score,
     shift_of_index,
     subpixel_peak,
+    surface_shape,
 )
 from .preprocess import prepare
 
@@ -39,6 +45,8 @@ BANDPASS_TIE_CELLS = 6.0  # band-pass width on the ground, in tie cells, at ever
 MAX_REFERENCE_CELLS = 320  # per side: finer hypotheses (tiny blocks) are not tried
 SWEEP_MIN_CELLS = 1000  # the block's cells at the sweep's level 2, else the sweep is at level 1
 MIN_SUPPORT_CELLS = 50  # correlations over fewer cells are high by chance too often
+WINDOW_CELLS = 8  # local refinement: shifts within this many cells of the candidate's
+STACK_CELLS = 200_000  # correlation cells of a stack (1.6 MB an array: measured fastest, in cache)
 RIVAL_KAPPA_DEG, RIVAL_SCALE, RIVAL_SHIFT_TIE_CELLS = 20.0, 1.25, 6.0  # a different answer
 
 
@@ -62,6 +70,32 @@ HEIGHTS = Channel("heights", "mean", "median", "mean", 0.0, None)
 # truth's score over the best different hypothesis rose from 0.79-1.07 (heights) to 1.10-1.70
 # (at the sweep's usual level 2: 0.71-1.02, so this channel is swept at level 1)
 OBJECTS = Channel("objects", "max", "max", "max", 1.0, 1)
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """The scores of one hypothesis at every shift, with the grids that locate them."""
+
+    score: np.ndarray  # :func:`~tiereg.coarse.correlation.match_score`; -inf where not valid
+    ncc: np.ndarray
+    overlap: np.ndarray  # share of the tie points' support that overlaps the reference
+    spec: GridSpec  # the tie points' grid (its shape: the stack's, padded below and right)
+    window: GridSpec  # the part of the reference grid correlated (all of it in full mode)
+    mode: Mode
+
+    def translation(self, index: tuple[float, float]) -> tuple[float, float]:
+        """``(tx, ty)`` of the hypothesis at a (fractional) surface index."""
+        dr, dc = shift_of_index(index, self.spec.shape, mode=self.mode)
+        c = self.window.cell_size
+        return (self.window.x0 - self.spec.x0 + dc * c, self.window.y0 - self.spec.y0 - dr * c)
+
+    def index_of(self, tx: float, ty: float) -> tuple[float, float]:
+        """The surface index of a translation (the inverse of :meth:`translation`)."""
+        c = self.window.cell_size
+        dc = (tx - self.window.x0 + self.spec.x0) / c
+        dr = (self.window.y0 - self.spec.y0 - ty) / c
+        zero = shift_of_index((0.0, 0.0), self.spec.shape, mode=self.mode)
+        return (dr - zero[0], dc - zero[1])
 
 
 @dataclass(frozen=True)
@@ -97,67 +131,143 @@ class Scorer:
         self.xy, self.z = moving[:, :2], moving[:, 2]
         self.ref, self.tie_cell, self.level, self.channel = ref, tie_cell, level, channel
         self._refs: dict[float, tuple[Grid, MaskedReference, float]] = {}
+        self._lock = threading.Lock()  # threads share the prepared grids (:func:`~tiereg.parallel.map_threads`)
         (x0, y0, x1, y1) = ref.base.spec.bounds
         self.ref_extent = max(x1 - x0, y1 - y0)
 
     def reference(self, sigma: float) -> tuple[Grid, MaskedReference, float]:
         """The prepared reference grid for ``sigma`` and its band-pass width in cells."""
         cell = max(self.level * self.tie_cell * sigma, self.ref.base_cell)
-        grid = self.ref.grid(cell, stats=(self.channel.reference_stat,))
-        key = grid.spec.cell_size
-        if key not in self._refs:
-            bandpass = BANDPASS_TIE_CELLS * self.tie_cell * sigma / key
-            p = prepare(grid[self.channel.reference_stat], grid.mask,
-                        bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
-            self._refs[key] = (grid, MaskedReference(p.image, p.support), bandpass)
-        return self._refs[key]
+        with self._lock:
+            grid = self.ref.grid(cell, stats=(self.channel.reference_stat,))
+            key = grid.spec.cell_size
+            if key not in self._refs:
+                bandpass = BANDPASS_TIE_CELLS * self.tie_cell * sigma / key
+                p = prepare(grid[self.channel.reference_stat], grid.mask,
+                            bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
+                self._refs[key] = (grid, MaskedReference(p.image, p.support), bandpass)
+            return self._refs[key]
 
-    def surface(self, kappa: float, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                          GridSpec, Grid] | None:
-        """The score (:func:`match_score`, -inf where not valid), NCC and overlap at every shift of
-        one hypothesis (full-mode surfaces, :mod:`tiereg.coarse.correlation`), with the tie
-        points' grid spec and the reference grid (``None``: the hypothesis cannot be scored)."""
+    def surface(self, kappa: float, sigma: float) -> Surface | None:
+        """The score surface of one hypothesis (:meth:`surfaces`)."""
+        return self.surfaces([kappa], sigma)[0]
+
+    def surfaces(self, kappas: Sequence[float], sigma: float, *,
+                 near: tuple[float, float] | None = None) -> list[Surface | None]:
+        """The score (:func:`match_score`, -inf where not valid), NCC and overlap at every shift
+        (full-mode surfaces, :mod:`tiereg.coarse.correlation`) of the hypotheses ``(kappa,
+        sigma)`` for each of ``kappas``; ``None`` where a hypothesis cannot be scored.
+
+        ``near=(tx, ty)``: only the shifts within :data:`WINDOW_CELLS` of that translation, in a
+        window of the reference (valid mode): the same scores there, at a fraction of the cost.
+
+        The headings share the scale's reference grid, so their tie-point grids are made and
+        correlated as one stack: the work per hypothesis is then mostly transforms, not the
+        overhead of many small array operations.
+        """
+        out: list[Surface | None] = [None] * len(kappas)
         if self.level * self.tie_cell * sigma < self.ref_extent / MAX_REFERENCE_CELLS:
-            return None
+            return out
         grid, mref, bandpass = self.reference(sigma)
         c = grid.spec.cell_size
-        ck, sk = math.cos(kappa), math.sin(kappa)
-        xy = sigma * (self.xy @ np.array([[ck, sk], [-sk, ck]]))
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
-        try:
-            spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], c, max_cells=4_000_000)
-        except Exception:
-            return None
-        if spec.size < MIN_SUPPORT_CELLS:
-            return None
+        placed: dict[int, tuple[np.ndarray, GridSpec]] = {}
+        for i, kappa in enumerate(kappas):
+            ck, sk = math.cos(kappa), math.sin(kappa)
+            xy = sigma * (self.xy @ np.array([[ck, sk], [-sk, ck]]))
+            lo, hi = xy.min(axis=0), xy.max(axis=0)
+            try:
+                spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], c, max_cells=4_000_000)
+            except InputError:
+                continue
+            if spec.size >= MIN_SUPPORT_CELLS:
+                placed[i] = (xy, spec)
+        if not placed:
+            return out
+        # one stack of a common shape; each grid keeps its own corner, padded below and right
+        shape = (max(sp.shape[0] for _, sp in placed.values()),
+                 max(sp.shape[1] for _, sp in placed.values()))
+        span = mref.shape if near is None else (shape[0] + 2 * WINDOW_CELLS,
+                                                shape[1] + 2 * WINDOW_CELLS)
+        per_chunk = max(1, STACK_CELLS // int(np.prod(surface_shape(span, shape))))
+        items = list(placed.items())
+        for lo_i in range(0, len(items), per_chunk):
+            chunk = items[lo_i : lo_i + per_chunk]
+            if near is None:
+                target, window, mode = mref, grid.spec, "full"
+            else:
+                target, window = _window(mref, grid.spec, [sp for _, (_, sp) in chunk], shape,
+                                         near)
+                mode = "valid"
+            found = self._stack(chunk, shape, target, bandpass, c, mode)
+            for (i, (_, spec)), one in zip(chunk, found):
+                if one is not None:
+                    out[i] = Surface(*one, replace(spec, shape=shape), window, mode)
+        return out
+
+    def _stack(self, chunk, shape, mref, bandpass, c, mode):
+        rows = shape[0]
+        # image j of the stack occupies rows j*rows .. (j+1)*rows - 1 of one tall grid
+        xs = np.concatenate([xy[:, 0] - sp.x0 for _, (xy, sp) in chunk])
+        ys = np.concatenate([xy[:, 1] - sp.y0 - j * rows * c
+                             for j, (_, (xy, sp)) in enumerate(chunk)])
+        zs = np.tile(self.z, len(chunk))
         stat = self.channel.tie_stat
-        mgrid = rasterize(np.column_stack([xy, self.z]), spec, stats=(stat,))
-        mov = prepare(mgrid[stat], mgrid.mask, bandpass_sigma_cells=bandpass,
-                      clip_nmad=self.channel.clip_nmad)
-        if mov.support.sum() < MIN_SUPPORT_CELLS:
-            return None
-        ncc, n = masked_ncc(mref, None, mov.image, mov.support)
-        overlap = n / float(mov.support.sum())
-        valid = (overlap >= MIN_OVERLAP) & (n >= MIN_SUPPORT_CELLS)
-        score = np.full(ncc.shape, -np.inf)
-        score[valid] = match_score(ncc[valid], overlap[valid])
-        return score, ncc, overlap, spec, grid
+        tall = rasterize(np.column_stack([xs, ys, zs]),
+                         GridSpec(0.0, 0.0, c, (len(chunk) * rows, shape[1])), stats=(stat,))
+        stack = (len(chunk), *shape)
+        mov = prepare(tall[stat].reshape(stack), tall.mask.reshape(stack),
+                      bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
+        n_support = mov.support.sum(axis=(-2, -1))
+        ncc, n = masked_ncc(mref, None, mov.image, mov.support, mode=mode)
+        for j in range(len(chunk)):
+            if n_support[j] < MIN_SUPPORT_CELLS:
+                yield None
+                continue
+            overlap = n[j] / float(n_support[j])
+            valid = (overlap >= MIN_OVERLAP) & (n[j] >= MIN_SUPPORT_CELLS)
+            score = np.full(ncc[j].shape, -np.inf)
+            score[valid] = match_score(ncc[j][valid], overlap[valid])
+            yield score, ncc[j], overlap
 
     def score(self, kappa: float, sigma: float) -> Hypothesis | None:
-        found = self.surface(kappa, sigma)
-        if found is None:
+        return self.score_many([kappa], sigma)[0]
+
+    def score_many(self, kappas: Sequence[float], sigma: float, *,
+                   near: tuple[float, float] | None = None) -> list[Hypothesis | None]:
+        """The best shift of each hypothesis ``(kappa, sigma)`` and its score (``near``: as in
+        :meth:`surfaces`)."""
+        return [None if found is None else self._best(kappa, sigma, found)
+                for kappa, found in zip(kappas, self.surfaces(kappas, sigma, near=near))]
+
+    def _best(self, kappa: float, sigma: float, found: Surface) -> Hypothesis | None:
+        best = np.unravel_index(int(np.argmax(found.score)), found.score.shape)
+        if not np.isfinite(found.score[best]):
             return None
-        score, ncc, overlap, spec, grid = found
-        best = np.unravel_index(int(np.argmax(score)), score.shape)
-        if not np.isfinite(score[best]):
-            return None
-        c = grid.spec.cell_size
-        r, col = subpixel_peak(score, best) if self.level == 1 else best
-        dr, dc = shift_of_index((r, col), spec.shape)
-        tx = grid.spec.x0 - spec.x0 + dc * c
-        ty = grid.spec.y0 - spec.y0 - dr * c
-        return Hypothesis(kappa, sigma, tx, ty, float(score[best]), float(ncc[best]),
-                          float(overlap[best]), self.level)
+        tx, ty = found.translation(subpixel_peak(found.score, best) if self.level == 1 else best)
+        return Hypothesis(kappa, sigma, tx, ty, float(found.score[best]), float(found.ncc[best]),
+                          float(found.overlap[best]), self.level)
+
+
+def _window(mref: MaskedReference, spec: GridSpec, specs: list[GridSpec],
+            shape: tuple[int, int], near: tuple[float, float]) -> tuple[MaskedReference,
+                                                                         GridSpec]:
+    """The part of a prepared reference the tie grids ``specs`` (padded to ``shape``) cover at
+    translation ``near``, widened by :data:`WINDOW_CELLS` on every side; zero (no data) where it
+    leaves the reference."""
+    c = spec.cell_size
+    r0 = [round((spec.y0 - sp.y0 - near[1]) / c) for sp in specs]  # the tie grid's first row
+    c0 = [round((sp.x0 + near[0] - spec.x0) / c) for sp in specs]
+    r_lo, c_lo = min(r0) - WINDOW_CELLS, min(c0) - WINDOW_CELLS
+    r_hi, c_hi = max(r0) + shape[0] + WINDOW_CELLS, max(c0) + shape[1] + WINDOW_CELLS
+    image = np.zeros((r_hi - r_lo, c_hi - c_lo))
+    mask = np.zeros_like(image)
+    rs, re = max(r_lo, 0), min(r_hi, mref.shape[0])
+    cs, ce = max(c_lo, 0), min(c_hi, mref.shape[1])
+    if re > rs and ce > cs:
+        image[rs - r_lo : re - r_lo, cs - c_lo : ce - c_lo] = mref.image[rs:re, cs:ce]
+        mask[rs - r_lo : re - r_lo, cs - c_lo : ce - c_lo] = mref.mask[rs:re, cs:ce]
+    window = GridSpec(spec.x0 + c_lo * c, spec.y0 - r_lo * c, c, image.shape)
+    return MaskedReference(image, mask), window
 
 
 @dataclass(frozen=True)
@@ -192,6 +302,7 @@ def search(
     keep: int = 6,
     seeds: list[tuple[float, float]] | None = None,
     channel: Channel = HEIGHTS,
+    workers: int | None = None,
 ) -> SearchResult:
     """Search heading and scale; ``moving`` is local (centred) model coordinates.
 
@@ -199,7 +310,8 @@ def search(
     (reference units per model unit). Scales at which the block could not overlap the reference
     by :data:`MIN_OVERLAP` of its area are skipped. ``seeds`` are extra ``(kappa, sigma)``
     hypotheses, e.g. from a frequency-domain method, refined like the sweep's own candidates.
-    ``channel``: what is correlated (:data:`HEIGHTS`, :data:`OBJECTS`).
+    ``channel``: what is correlated (:data:`HEIGHTS`, :data:`OBJECTS`). ``workers``: threads
+    that score the scales side by side (default: one per core).
     """
     n_hyp = 0
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
@@ -213,13 +325,13 @@ def search(
     n_sigma = max(0, int(math.ceil(math.log(sigma_max / sigma_range[0]) / math.log(sigma_ratio))))
     sigmas = sigma_range[0] * sigma_ratio ** np.arange(n_sigma + 1)
     kappas = np.radians(np.arange(0.0, 360.0, kappa_step_deg))
-    hyps = [(float(k), float(sg)) for sg in sigmas for k in kappas] + list(seeds or [])
-    sweep: list[Hypothesis] = []
-    for kappa, sigma in hyps:
-        h = sweep_scorer.score(kappa, sigma)
-        n_hyp += 1
-        if h is not None:
-            sweep.append(h)
+    by_sigma: dict[float, list[float]] = {float(sg): [float(k) for k in kappas] for sg in sigmas}
+    for kappa, sigma in seeds or []:
+        by_sigma.setdefault(float(sigma), []).append(float(kappa))
+    scored = map_threads(lambda item: sweep_scorer.score_many(item[1], item[0]),
+                         by_sigma.items(), workers=workers)
+    sweep = [h for hs in scored for h in hs if h is not None]
+    n_hyp += sum(len(k) for k in by_sigma.values())
     if not sweep:
         raise NoOverlap()
     sep = dict(kappa_deg=2 * kappa_step_deg, log_sigma=2 * math.log(sigma_ratio))
@@ -232,7 +344,8 @@ def search(
         shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * sweep_best.sigma)), None)
 
     refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell, channel=channel,
-                                          first_steps=(kappa_step_deg / 2, sigma_ratio ** 0.5))
+                                          first_steps=(kappa_step_deg / 2, sigma_ratio ** 0.5),
+                                          workers=workers)
     n_hyp += n_refine
     best = refined[0] if refined else replace(sweep_best, level=1)
     return SearchResult(best, runner_up, sweep_best, (tuple(top), tuple(refined)), n_hyp)
@@ -247,6 +360,7 @@ def verify_candidates(
     keep: int,
     log_sigma: float,
     n_tried: int,
+    workers: int | None = None,
 ) -> SearchResult:
     """The answer from a few scored candidates (a frequency-domain or moments method): the
     ``keep`` best distinct ones (``log_sigma`` apart in scale, 5 deg in heading) refined on the
@@ -259,7 +373,7 @@ def verify_candidates(
     rival = next((h for h in ranked if h.distinct_from(
         top[0], kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
         shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * top[0].sigma)), None)
-    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell)
+    refined, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell, workers=workers)
     best = refined[0] if refined else top[0]
     return SearchResult(best, rival, top[0], (tuple(top), tuple(refined)), n_tried + n_refine)
 
@@ -272,34 +386,37 @@ def refine_candidates(
     tie_cell: float,
     first_steps: tuple[float, float] = (3.75, 2 ** 0.1),
     channel: Channel = HEIGHTS,
+    workers: int | None = None,
 ) -> tuple[list[Hypothesis], int]:
     """Refine each candidate on the finest level: a 3 x 3 (heading, scale) neighbourhood with
     ``first_steps`` (degrees, scale ratio), then 1 deg / 2 %, then 0.5 deg / 1 %; best first.
 
     Locally the candidates are compared by NCC alone: the overlap weight that keeps the sweep
-    away from spurious small overlaps would here favour shrinking a partly covered block.
+    away from spurious small overlaps would here favour shrinking a partly covered block. Each
+    step looks only at shifts near the current one (:data:`WINDOW_CELLS`): a refinement stays in
+    its candidate's basin. ``workers``: threads refining candidates side by side.
     """
     fine = Scorer(moving, ref, tie_cell, 1, channel=channel)
-    refined: list[Hypothesis] = []
-    n = 0
-    for h in candidates:
-        cur = h
-        for dk_deg, ratio in (first_steps, (1.0, 1.02), (0.5, 1.01)):
+    steps = (first_steps, (1.0, 1.02), (0.5, 1.01))
+
+    def refine(h: Hypothesis) -> tuple[Hypothesis, int]:
+        cur, n = h, 0
+        for dk_deg, ratio in steps:
             local = [cur]
-            for dk in (-dk_deg, 0.0, dk_deg):
-                for ds in (1 / ratio, 1.0, ratio):
-                    if dk == 0.0 and ds == 1.0 and cur.level == 1:
-                        continue
-                    cand = fine.score(cur.kappa + math.radians(dk), cur.sigma * ds)
-                    n += 1
-                    if cand is not None:
-                        local.append(cand)
+            for ds in (1 / ratio, 1.0, ratio):
+                dks = [dk for dk in (-dk_deg, 0.0, dk_deg)
+                       if not (dk == 0.0 and ds == 1.0 and cur.level == 1)]
+                kappas = [cur.kappa + math.radians(dk) for dk in dks]
+                local += [c for c in fine.score_many(kappas, cur.sigma * ds,
+                                                      near=(cur.tx, cur.ty)) if c is not None]
+                n += len(kappas)
             level1 = [c for c in local if c.level == 1]
             cur = max(level1, key=lambda c: c.ncc) if level1 else cur
-        if cur.level == 1:
-            refined.append(cur)
-    refined.sort(key=lambda c: -c.score)
-    return refined, n
+        return cur, n
+
+    done = map_threads(refine, candidates, workers=workers)
+    refined = sorted((h for h, _ in done if h.level == 1), key=lambda c: -c.score)
+    return refined, sum(n for _, n in done)
 
 
 class NoOverlap(Exception):

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..grid import GridSpec, rasterize
+from ..parallel import map_threads
 from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
@@ -113,10 +114,9 @@ def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis, cell
     steps = np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
                       math.radians(0.2), math.radians(0.2)])
     thin = _place(moving[:: max(1, len(moving) // START_POINTS)])  # the starts see a sample
-    fits = [fit_to_surface(thin, sampler,
-                           np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]),
-                           steps, tol_fraction=1 / 16)
-            for d in SCALE_STARTS]
+    fits = map_threads(lambda d: fit_to_surface(
+        thin, sampler, np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]), steps,
+        tol_fraction=1 / 16), SCALE_STARTS, workers=None)
     good = [f for f in fits if f.converged and np.isfinite(f.sigma0)] or fits
     start = min(good, key=lambda f: f.sigma0)
     place = _place(moving)
@@ -140,13 +140,12 @@ def frequency_search(
     name, robust = method.removesuffix("-classic"), not method.endswith("-classic")
     n_levels = int(math.ceil(math.log2(sigma_range[1] / sigma_range[0]))) + 1
     scorer = Scorer(moving, ref, tie_cell, 2)
-    hyps: list[Hypothesis] = []
-    n = 0
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
     spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], tie_cell)
     mgrid = rasterize(moving, spec, stats=("median",))
     mov = prepare(mgrid["median"], mgrid.mask,
                   bandpass_sigma_cells=6.0 if robust else 0.0)
+    tried: list[tuple[float, float]] = []
     for level in range(n_levels):
         s_level = sigma_range[0] * 2.0**level
         grid = ref.grid(tie_cell * s_level)
@@ -156,14 +155,12 @@ def frequency_search(
             continue
         for c in rotation_scale_candidates(rgrid, mov, method=name, robust=robust):
             sigma = c.scale * s_eff
-            if not sigma_range[0] / 1.5 <= sigma <= sigma_range[1] * 1.5:
-                continue
-            h = scorer.score(c.theta, sigma)
-            n += 1
-            if h is not None:
-                hyps.append(h)
+            if sigma_range[0] / 1.5 <= sigma <= sigma_range[1] * 1.5:
+                tried.append((c.theta, sigma))
+    scored = map_threads(lambda kappa_sigma: scorer.score(*kappa_sigma), tried, workers=None)
+    hyps = [h for h in scored if h is not None]
     return verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=6,
-                             log_sigma=math.log(1.1), n_tried=n)
+                             log_sigma=math.log(1.1), n_tried=len(tried))
 
 
 def register_similarity(
@@ -185,14 +182,20 @@ def register_similarity(
     seeds = list(seeds or [])
     t0 = time.perf_counter()
     if method == "auto":  # frequency domain first; the exhaustive sweep when that is not enough
-        quick = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
-                                    sigma_range=sigma_range, method="qafmt")
-        residual_ratio = quick.details.get("residual_ratio", 1.0)
-        if quick.confident and residual_ratio <= TRUST[HEIGHTS.name].max_residual_ratio:
-            return replace(quick, method="auto", seconds=time.perf_counter() - t0,
-                           details={**quick.details, "decided_by": "qafmt"})
-        seeds = [(math.radians(d["kappa_deg"]), d["scale"])
-                 for d in quick.details.get("verified", [])]
+        try:
+            quick = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method="qafmt",
+                                     sigma_range=sigma_range)
+        except NoOverlap:
+            quick = None
+        # the continuous fit is the dear part of judging: spared when the candidates' own
+        # scores already rule out a confident answer (the same verdict, judge's rules)
+        if quick is not None and may_explain(quick, TRUST[HEIGHTS.name]):
+            judged = judge(moving_xyz, SurfaceSampler.from_grid(reference.base), quick,
+                           method="qafmt", tie_cell=tie_cell)
+            if judged.confident:
+                return replace(judged, method="auto", seconds=time.perf_counter() - t0,
+                               details={**judged.details, "decided_by": "qafmt"})
+        seeds = [] if quick is None else [(h.kappa, h.sigma) for lv in quick.levels for h in lv]
         full = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
                                    sigma_range=sigma_range, method="search", seeds=seeds)
         return replace(full, method="auto", seconds=time.perf_counter() - t0,
@@ -234,6 +237,21 @@ def register_similarity(
     return replace(result, seconds=time.perf_counter() - t0)
 
 
+def rival_ratio(found: SearchResult) -> float:
+    """The sweep's best score over that of the best genuinely different hypothesis."""
+    rival = found.runner_up.score if found.runner_up is not None else 0.0
+    return found.sweep_best.score / rival if rival > 0 else float("inf")
+
+
+def may_explain(found: SearchResult, trust: Trust) -> bool:
+    """Whether the answer could pass :func:`judge` as explaining the heights, by the checks that
+    need no fit (correlation, overlap, rival ratio)."""
+    best = found.best
+    return (best.ncc >= max(trust.min_ncc, trust.min_ncc_explained)
+            and best.overlap >= trust.min_overlap_explained
+            and rival_ratio(found) >= trust.min_rival_ratio_explained)
+
+
 def judge(
     moving_xyz: np.ndarray,
     sampler: SurfaceSampler,
@@ -273,8 +291,7 @@ def judge(
     spread = nmad(z_surf[ok]) if ok.sum() > 10 else float("nan")
     residual_ratio = fit.sigma0 / spread if spread and np.isfinite(spread) else float("inf")
 
-    rival = found.runner_up.score if found.runner_up is not None else 0.0
-    ratio = found.sweep_best.score / rival if rival > 0 else float("inf")
+    ratio = rival_ratio(found)
     explained = (residual_ratio <= trust.max_residual_ratio
                  and best.ncc >= trust.min_ncc_explained
                  and ratio >= trust.min_rival_ratio_explained

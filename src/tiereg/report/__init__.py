@@ -78,7 +78,6 @@ WINDOW_CELLS = 15  # the correlation picture: shifts up to this many cells each 
 def _correlation_window(result) -> np.ndarray | None:
     """The coarse score surface of the registered tie points around zero shift, or ``None``."""
     from ..coarse.search import Scorer
-    from ..coarse.correlation import shift_of_index
 
     if result.coarse is None or result.reference is None or result.residuals is None:
         return None
@@ -86,11 +85,8 @@ def _correlation_window(result) -> np.ndarray | None:
     found = Scorer(placed, result.reference, result.cell_size, 1).surface(0.0, 1.0)
     if found is None:
         return None
-    score, _, _, spec, grid = found
-    c = grid.spec.cell_size
-    # the index of zero shift: tx = grid.x0 - spec.x0 + dc * c = 0 (and the same in y)
-    d0 = np.array([(spec.y0 - grid.spec.y0) / -c, (spec.x0 - grid.spec.x0) / c])
-    i0 = np.rint(np.array(shift_of_index((0.0, 0.0), spec.shape)) * -1 + d0).astype(int)
+    score = found.score
+    i0 = np.rint(found.index_of(0.0, 0.0)).astype(int)  # the index of zero shift
     k = WINDOW_CELLS
     out = np.full((2 * k + 1, 2 * k + 1), -np.inf)
     r0, c0 = i0[0] - k, i0[1] - k
