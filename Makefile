@@ -32,6 +32,7 @@ browser:
 bench: install bench-peers
 	$(BIN)/python benchmarks/grid.py
 	$(BIN)/python benchmarks/coarse.py
+	$(BIN)/python benchmarks/coarse.py --timing
 	$(BIN)/python benchmarks/fine.py
 	$(BIN)/python benchmarks/precision.py
 	$(BIN)/python benchmarks/control.py

@@ -7,6 +7,8 @@ negative cases whose tie points come from a world the lidar never saw.
 
     python benchmarks/coarse.py            # full run -> benchmarks/results/coarse.{md,json,png}
     python benchmarks/coarse.py --quick    # a few cases -> benchmarks/work/ (development)
+    python benchmarks/coarse.py --timing   # auto on the synthetic scenes, one case at a time
+                                           # on all cores -> benchmarks/results/coarse-timing.md
 
 A case is *correct* when the heading is within 2 deg, the scale within 2 % and the horizontal
 position of the block centre within one coarse cell of the truth. A negative case is correct when
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import platform
 import sys
 import time
@@ -180,12 +183,14 @@ def run_open3d(scene, ref: Reference, cell: float) -> tuple[Transform, float, st
 
 # ---------------------------------------------------------------------------------------- run
 def run(quick: bool, with_open3d: bool, workers: int,
-        methods: tuple[str, ...] = TIEREG_METHODS) -> tuple[list[Outcome], dict]:
-    """All scenes, ``workers`` at a time (each scene in its own process)."""
+        methods: tuple[str, ...] = TIEREG_METHODS, *, scenes: tuple[str, ...] | None = None,
+        peers: bool = True) -> tuple[list[Outcome], dict]:
+    """All scenes (or those named), ``workers`` at a time (each scene in its own process)."""
     WORK.mkdir(parents=True, exist_ok=True)
     specs = scene_specs(quick)  # also fills LOOKALIKE_KIND, which the workers need passed
-    jobs = [(i, name, spec, quick, with_open3d, LOOKALIKE_KIND.get(name, spec.kind), methods)
-            for i, (name, spec) in enumerate(specs.items())]
+    jobs = [(i, name, spec, quick, with_open3d and peers, LOOKALIKE_KIND.get(name, spec.kind),
+             methods, peers)
+            for i, (name, spec) in enumerate(specs.items()) if scenes is None or name in scenes]
     if workers > 1:
         from multiprocessing import get_context
 
@@ -194,12 +199,12 @@ def run(quick: bool, with_open3d: bool, workers: int,
     else:
         parts = [run_scene(job) for job in jobs]
     outcomes = [o for part, _ in parts for o in part]
-    meta = {"scenes": {k: v for _, m in parts for k, v in m.items()}}
+    meta = {"scenes": {k: v for _, m in parts for k, v in m.items()}, "workers": workers}
     return outcomes, meta
 
 
 def run_scene(job) -> tuple[list[Outcome], dict]:
-    index, name, spec, quick, with_open3d, lookalike, methods = job
+    index, name, spec, quick, with_open3d, lookalike, methods, peers = job
     rng = np.random.default_rng([2026, index])
     outcomes: list[Outcome] = []
     meta: dict = {"scenes": {}}
@@ -229,7 +234,7 @@ def run_scene(job) -> tuple[list[Outcome], dict]:
             T, conf, sec, note = run_tiereg(method, scene, ref)
             outcomes.append(_outcome(f"tiereg {method}", case, scene, T, conf, sec, note,
                                      cell))
-        for peer in PEERS_IMAGE:
+        for peer in PEERS_IMAGE if peers else ():
             T, sec, note = run_image_peer(peer, scene, ref, cell)
             outcomes.append(_outcome(peer, case, scene, T, None, sec, note, cell))
         if with_open3d and case.index % OPEN3D_EVERY == 0:  # the slowest peer: a sample
@@ -315,6 +320,8 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
         f"- correct: heading within {HEADING_TOL_DEG:g} deg, scale within "
         f"{SCALE_TOL:.0%}, block centre within one coarse cell; confidently wrong: marked "
         "confident and not correct (peers give no confidence)",
+        f"- times: {meta.get('workers', 1)} scene(s) at a time, each in its own process, on "
+        f"{os.cpu_count()} cores; `coarse-timing.md` gives auto's time with the cores to itself",
         *([f"- left out, not installed on this machine: {', '.join(missing)} "
            "(`make bench-peers` installs the peers)"] if missing else []), "",
         "| method | correct | rate | confidently wrong | confident | negatives rejected | "
@@ -411,6 +418,34 @@ def plot(outcomes: list[Outcome], path: Path) -> None:
     plt.close(fig)
 
 
+def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float) -> None:
+    """Seconds per case of auto, one case at a time with the machine's cores to itself."""
+    def row(name: str, sel: list[Outcome]) -> str:
+        t = np.array([o.seconds for o in sel])
+        ok = sum(o.correct for o in sel)
+        return (f"| {name} | {len(sel)} | {ok}/{len(sel)} | {np.median(t):.2f} | "
+                f"{np.percentile(t, 90):.2f} | {t.max():.2f} |")
+
+    date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    lines = [
+        "# Coarse registration: time per case (`tiereg auto`)", "",
+        f"- date: {date}; machine: {platform.machine()}, {os.cpu_count()} cores, Python "
+        f"{platform.python_version()}; total run time {seconds / 60:.1f} min",
+        "- one case at a time, the cores to itself (its threads use them all); the lidar is "
+        "read and gridded once per scene, before the clock starts, as the acceptance asks",
+        "- scenes at the method source's scale: " + ", ".join(
+            f"{k} ({v['tie_points']} tie points, cell {v['cell']:g} m)"
+            for k, v in meta["scenes"].items()),
+        "- the cases of `coarse.md` (the same seeds), negative cases included", "",
+        "| scene | cases | correct | median s | p90 s | max s |",
+        "|---|---:|---:|---:|---:|---:|",
+        *(row(sc, [o for o in outcomes if o.case.scene == sc])
+          for sc in dict.fromkeys(o.case.scene for o in outcomes)),
+        row("all", outcomes), "",
+    ]
+    path.write_text("\n".join(lines))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="a few cases, results to work/")
@@ -418,11 +453,20 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="scenes run in parallel")
     parser.add_argument("--methods", default=",".join(TIEREG_METHODS),
                         help="tiereg coarse methods, comma-separated")
+    parser.add_argument("--timing", action="store_true",
+                        help="auto alone on the synthetic scenes, one case at a time on all "
+                             "cores -> results/coarse-timing.md")
     parser.add_argument("--keep-others", action="store_true",
                         help="methods not run this time keep their outcomes from the last "
                              "results (after a change that touches only the methods run)")
     args = parser.parse_args()
     t0 = time.perf_counter()
+    if args.timing:
+        outcomes, meta = run(False, with_open3d=False, workers=1, methods=("auto",),
+                             scenes=KINDS, peers=False)
+        write_timing(outcomes, meta, RESULTS / "coarse-timing.md", time.perf_counter() - t0)
+        print(RESULTS / "coarse-timing.md")
+        return
     outcomes, meta = run(args.quick, with_open3d=not args.no_open3d, workers=args.workers,
                          methods=tuple(args.methods.split(",")))
     if args.keep_others:

@@ -101,6 +101,11 @@ def _place(xyz: np.ndarray):
 
 
 SCALE_STARTS = (0.0, -0.05, 0.05, -0.10, 0.10, -0.15, 0.15)  # log-scale offsets of the starts
+# a fit that moves the scale further than this from the grid's answer disagrees with it: the
+# grid's scale is good to a few per cent where it is right (1 % steps), and the fit's wider
+# starts are for small or smooth blocks; a levelled farmland model was 6 % off after the search
+# and 8.5 % off (the other way) after the fit, confident, with a rival ratio of 1.39
+MAX_FIT_RESCALE = math.log(1.08)
 START_POINTS = 1000  # about this many tie points take part in the starts
 
 
@@ -189,18 +194,23 @@ def register_similarity(
             quick = None
         # the continuous fit is the dear part of judging: spared when the candidates' own
         # scores already rule out a confident answer (the same verdict, judge's rules)
+        timings = {"qafmt": time.perf_counter() - t0}
         if quick is not None and may_explain(quick, TRUST[HEIGHTS.name]):
             judged = judge(moving_xyz, SurfaceSampler.from_grid(reference.base), quick,
                            method="qafmt", tie_cell=tie_cell)
+            timings["qafmt_judge"] = judged.seconds
             if judged.confident:
                 return replace(judged, method="auto", seconds=time.perf_counter() - t0,
-                               details={**judged.details, "decided_by": "qafmt"})
+                               details={**judged.details, "decided_by": "qafmt",
+                                        "timings_s": _rounded(timings)})
         seeds = [] if quick is None else [(h.kappa, h.sigma) for lv in quick.levels for h in lv]
         full = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
                                    sigma_range=sigma_range, method="search", seeds=seeds)
         return replace(full, method="auto", seconds=time.perf_counter() - t0,
-                       details={**full.details, "decided_by": "search"})
+                       details={**full.details, "decided_by": "search", "timings_s": _rounded(
+                           {**timings, **full.details.get("timings_s", {})})})
     extra: dict = {}
+    timings: dict[str, float] = {}
     try:
         if method in FREQUENCY_METHODS:
             found = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method=method,
@@ -217,9 +227,12 @@ def register_similarity(
                             0.0, (), ("no heading and scale in the searched range makes the tie "
                                       f"points overlap the reference by {MIN_OVERLAP:.0%}",),
                             time.perf_counter() - t0)
+    timings[method] = time.perf_counter() - t0
     sampler = SurfaceSampler.from_grid(reference.base)  # the finest surface, for both channels
     result = judge(moving_xyz, sampler, found, method=method, tie_cell=tie_cell, extra=extra)
+    timings["judge"] = result.seconds
     if method == "search" and not result.confident:
+        t_objects = time.perf_counter()
         # the heights did not decide: what stands on the ground may (flat farmland)
         try:
             objects = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
@@ -231,10 +244,16 @@ def register_similarity(
                            extra=extra, channel=OBJECTS)
             # neither confident: the heights' answer stands (taking the more distinct of the two
             # peaks lost two right answers on the benchmark and gained none)
+            timings["objects"] = time.perf_counter() - t_objects
             result, other = (second, result) if second.confident else (result, second)
             result = replace(result, details={**result.details, "other_channel": {
                 **other.details, "confident": other.confident, "reasons": list(other.reasons)}})
-    return replace(result, seconds=time.perf_counter() - t0)
+    return replace(result, seconds=time.perf_counter() - t0,
+                   details={**result.details, "timings_s": _rounded(timings)})
+
+
+def _rounded(timings: dict[str, float]) -> dict[str, float]:
+    return {k: round(v, 3) for k, v in timings.items()}
 
 
 def rival_ratio(found: SearchResult) -> float:
@@ -313,6 +332,9 @@ def judge(
                        f"found pose (residual spread {residual_ratio:.2f} x the surface's own)")
     if best.overlap < MIN_OVERLAP:
         reasons.append(f"small overlap ({best.overlap:.0%} of the tie points)")
+    if rescaled > MAX_FIT_RESCALE:
+        reasons.append(f"the continuous fit moved the scale by {math.expm1(rescaled):.0%} from "
+                       "the search's answer: the two disagree")
     confident = not reasons
     # the stronger of the two kinds of evidence: a distinct peak, or heights explained
     distinct = np.clip((ratio - 1) / 0.5, 0, 1)
@@ -338,7 +360,9 @@ def judge(
                 "kappa_deg": math.degrees(found.runner_up.kappa),
                 "scale": found.runner_up.sigma, "score": found.runner_up.score},
             "refinement": {"iterations": fit.iterations, "converged": fit.converged,
-                           "sigma0": fit.sigma0, "n_used": fit.n_used},
+                           "sigma0": fit.sigma0, "n_used": fit.n_used,
+                           "scale_change": math.expm1(log_sigma - math.log(best.sigma)),
+                           "turn_deg": math.degrees(kappa - best.kappa), "shift_cells": moved},
             "residual_ratio": residual_ratio,
             "verified": [{"kappa_deg": math.degrees(h.kappa), "scale": h.sigma, "score": h.score}
                          for level in found.levels for h in level],
