@@ -131,7 +131,7 @@ class Scorer:
         self.xy, self.z = moving[:, :2], moving[:, 2]
         self.ref, self.tie_cell, self.level, self.channel = ref, tie_cell, level, channel
         self._refs: dict[float, tuple[Grid, MaskedReference, float]] = {}
-        self._lock = threading.Lock()  # threads share the prepared grids (:func:`~tiereg.parallel.map_threads`)
+        self._lock = threading.Lock()  # the threads of a search share the prepared grids
         (x0, y0, x1, y1) = ref.base.spec.bounds
         self.ref_extent = max(x1 - x0, y1 - y0)
 

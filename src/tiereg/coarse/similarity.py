@@ -101,10 +101,11 @@ def _place(xyz: np.ndarray):
 
 
 SCALE_STARTS = (0.0, -0.05, 0.05, -0.10, 0.10, -0.15, 0.15)  # log-scale offsets of the starts
-# a fit that moves the scale further than this from the grid's answer disagrees with it: the
-# grid's scale is good to a few per cent where it is right (1 % steps), and the fit's wider
-# starts are for small or smooth blocks; a levelled farmland model was 6 % off after the search
-# and 8.5 % off (the other way) after the fit, confident, with a rival ratio of 1.39
+# a fit that moves the scale further than this from the grid's answer, and then does not
+# explain the heights, disagrees with it: a levelled farmland model was 6 % off after the search
+# and 8.5 % off (the other way) after the fit, residual ratio 0.63, confident with a rival ratio
+# of 1.39; where the fit explains the heights it corrects the grid (a smooth test surface: 14 %
+# off on the grid, right after the fit, residual ratio 0.01)
 MAX_FIT_RESCALE = math.log(1.08)
 START_POINTS = 1000  # about this many tie points take part in the starts
 
@@ -332,7 +333,7 @@ def judge(
                        f"found pose (residual spread {residual_ratio:.2f} x the surface's own)")
     if best.overlap < MIN_OVERLAP:
         reasons.append(f"small overlap ({best.overlap:.0%} of the tie points)")
-    if rescaled > MAX_FIT_RESCALE:
+    if rescaled > MAX_FIT_RESCALE and residual_ratio > trust.max_residual_ratio:
         reasons.append(f"the continuous fit moved the scale by {math.expm1(rescaled):.0%} from "
                        "the search's answer: the two disagree")
     confident = not reasons
