@@ -86,6 +86,42 @@ def test_scores_near_a_position_are_the_full_surfaces_scores_there(mountains):
     assert (local.tx, local.ty, local.score) == pytest.approx((best.tx, best.ty, best.score))
 
 
+def test_a_fit_is_reused_only_for_a_hypothesis_that_starts_the_same(mountains):
+    """auto judges qafmt's answer and then the sweep's: where they coincide the continuous fit
+    is not run twice, and the verdict is the one a fresh fit gives."""
+    import math
+    from dataclasses import replace
+
+    from tiereg.coarse.search import search
+    from tiereg.coarse.similarity import FitCache, judge
+    from tiereg.surface import SurfaceSampler
+
+    spec, world, ref = mountains
+    hidden = HiddenTransform(heading_deg=40.0, scale=2.0, model_origin=(0.0, 0.0, 0.0))
+    scene = make_scene(SceneSpec(kind="mountains", seed=3, hidden=hidden, overlap=0.8, **SMALL),
+                       world=world)
+    moving = scene.moving - scene.moving.mean(axis=0)
+    found = search(moving, ref, tie_cell=20.0, seeds=[])
+    sampler = SurfaceSampler.from_grid(ref.base)
+    fits = FitCache()
+    first = judge(moving, sampler, found, method="search", tie_cell=20.0, fits=fits)
+    best = found.best
+    near = replace(best, kappa=best.kappa + math.radians(0.2), tx=best.tx + 3.0)
+    again = judge(moving, sampler, replace(found, best=near), method="search", tie_cell=20.0,
+                  fits=fits)
+    assert (fits.reused, len(fits.fits)) == (1, 1) and again.details["refinement"]["reused"]
+    assert np.allclose(again.T_ref_mov.matrix, first.T_ref_mov.matrix)
+    fresh = judge(moving, sampler, replace(found, best=near), method="search", tie_cell=20.0)
+    assert not fresh.details["refinement"]["reused"] and fresh.confident == again.confident
+    assert np.allclose(fresh.T_ref_mov.matrix[:3, 3], first.T_ref_mov.matrix[:3, 3], atol=2.0)
+    far = replace(best, kappa=best.kappa + math.radians(2.0))
+    judge(moving, sampler, replace(found, best=far), method="search", tie_cell=20.0, fits=fits)
+    assert (fits.reused, len(fits.fits)) == (1, 2)
+    # and the answer is the hidden one: 2 m on the ground is a tenth of a tie cell
+    est, true = first.T_ref_mov.parameters(), scene.T_ref_mov.parameters()
+    assert first.confident and est.scale / true.scale == pytest.approx(1.0, abs=0.005)
+
+
 @pytest.mark.parametrize("angle_deg", [30.0, 120.0])
 def test_spectral_orientation_of_stripes(angle_deg):
     from tiereg.coarse.moments import spectral_orientation

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,7 +30,7 @@ from ..transform import Transform, rotation_matrix
 from .fourier_mellin import rotation_scale_candidates
 from .moments import moments_search
 from .preprocess import prepare
-from .refine import fit_to_surface
+from .refine import SurfaceFit, fit_to_surface
 from .result import Candidate, CoarseResult
 from .search import (
     HEIGHTS,
@@ -108,9 +108,34 @@ SCALE_STARTS = (0.0, -0.05, 0.05, -0.10, 0.10, -0.15, 0.15)  # log-scale offsets
 # off on the grid, right after the fit, residual ratio 0.01)
 MAX_FIT_RESCALE = math.log(1.08)
 START_POINTS = 1000  # about this many tie points take part in the starts
+# a hypothesis this close to one already fitted starts the same fit (the starts span +-15 % in
+# scale and the fit moves cells): its fit is reused (auto's sweep often ends where qafmt did)
+SAME_START_DEG, SAME_START_SCALE, SAME_START_CELLS = 0.5, 1.01, 0.5
 
 
-def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis, cell: float):
+@dataclass
+class FitCache:
+    """Continuous fits of hypotheses against one surface, shared by the judgements of a run."""
+
+    fits: list[tuple[Hypothesis, SurfaceFit]] = field(default_factory=list)
+    reused: int = 0
+
+    def fit(self, moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis,
+            cell: float) -> SurfaceFit:
+        """:func:`refine_pose` of ``h``, or the fit of a hypothesis that starts the same."""
+        for done, fit in self.fits:
+            if not h.distinct_from(done, kappa_deg=SAME_START_DEG,
+                                   log_sigma=math.log(SAME_START_SCALE),
+                                   shift=SAME_START_CELLS * cell):
+                self.reused += 1
+                return fit
+        fit = refine_pose(moving, sampler, h, cell)
+        self.fits.append((h, fit))
+        return fit
+
+
+def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis,
+                cell: float) -> SurfaceFit:
     """The continuous fit of a search hypothesis, from several scales around it.
 
     Grid scores locate the scale only to within several per cent on smooth or small surfaces,
@@ -177,6 +202,7 @@ def register_similarity(
     sigma_range: tuple[float, float] = (0.25, 4.0),
     method: str = "search",
     seeds: list[tuple[float, float]] | None = None,
+    fits: FitCache | None = None,
 ) -> CoarseResult:
     """Heading, scale, shift and height offset of centred tie points against a reference.
 
@@ -186,6 +212,7 @@ def register_similarity(
     seeded with its candidates unless its answer is confident and explains the heights).
     """
     seeds = list(seeds or [])
+    fits = FitCache() if fits is None else fits
     t0 = time.perf_counter()
     if method == "auto":  # frequency domain first; the exhaustive sweep when that is not enough
         try:
@@ -198,7 +225,7 @@ def register_similarity(
         timings = {"qafmt": time.perf_counter() - t0}
         if quick is not None and may_explain(quick, TRUST[HEIGHTS.name]):
             judged = judge(moving_xyz, SurfaceSampler.from_grid(reference.base), quick,
-                           method="qafmt", tie_cell=tie_cell)
+                           method="qafmt", tie_cell=tie_cell, fits=fits)
             timings["qafmt_judge"] = judged.seconds
             if judged.confident:
                 return replace(judged, method="auto", seconds=time.perf_counter() - t0,
@@ -206,7 +233,8 @@ def register_similarity(
                                         "timings_s": _rounded(timings)})
         seeds = [] if quick is None else [(h.kappa, h.sigma) for lv in quick.levels for h in lv]
         full = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
-                                   sigma_range=sigma_range, method="search", seeds=seeds)
+                                   sigma_range=sigma_range, method="search", seeds=seeds,
+                                   fits=fits)
         return replace(full, method="auto", seconds=time.perf_counter() - t0,
                        details={**full.details, "decided_by": "search", "timings_s": _rounded(
                            {**timings, **full.details.get("timings_s", {})})})
@@ -230,7 +258,8 @@ def register_similarity(
                             time.perf_counter() - t0)
     timings[method] = time.perf_counter() - t0
     sampler = SurfaceSampler.from_grid(reference.base)  # the finest surface, for both channels
-    result = judge(moving_xyz, sampler, found, method=method, tie_cell=tie_cell, extra=extra)
+    result = judge(moving_xyz, sampler, found, method=method, tie_cell=tie_cell, extra=extra,
+                   fits=fits)
     timings["judge"] = result.seconds
     if method == "search" and not result.confident:
         t_objects = time.perf_counter()
@@ -242,7 +271,7 @@ def register_similarity(
             objects = None
         if objects is not None:
             second = judge(moving_xyz, sampler, objects, method=method, tie_cell=tie_cell,
-                           extra=extra, channel=OBJECTS)
+                           extra=extra, channel=OBJECTS, fits=fits)
             # neither confident: the heights' answer stands (taking the more distinct of the two
             # peaks lost two right answers on the benchmark and gained none)
             timings["objects"] = time.perf_counter() - t_objects
@@ -281,15 +310,19 @@ def judge(
     tie_cell: float,
     extra: dict | None = None,
     channel: Channel = HEIGHTS,
+    fits: FitCache | None = None,
 ) -> CoarseResult:
     """The refined pose of a search's answer against the reference surface ``sampler``, and
-    whether to trust it (module docstring, 2-3)."""
+    whether to trust it (module docstring, 2-3). ``fits``: fits of earlier judgements against
+    the same surface, reused for a hypothesis that starts the same."""
     t0 = time.perf_counter()
     extra = extra or {}
     trust = TRUST[channel.name]
     best = found.best
     cell = tie_cell * best.sigma
-    fit = refine_pose(moving_xyz, sampler, best, cell)
+    fits = FitCache() if fits is None else fits
+    reused_before = fits.reused
+    fit = fits.fit(moving_xyz, sampler, best, cell)
     kappa, log_sigma, tx, ty, omega, phi = fit.params
     moved = math.hypot(tx - best.tx, ty - best.ty) / cell
     turned = abs(math.degrees(kappa - best.kappa))
@@ -363,7 +396,8 @@ def judge(
             "refinement": {"iterations": fit.iterations, "converged": fit.converged,
                            "sigma0": fit.sigma0, "n_used": fit.n_used,
                            "scale_change": math.expm1(log_sigma - math.log(best.sigma)),
-                           "turn_deg": math.degrees(kappa - best.kappa), "shift_cells": moved},
+                           "turn_deg": math.degrees(kappa - best.kappa), "shift_cells": moved,
+                           "reused": fits.reused > reused_before},
             "residual_ratio": residual_ratio,
             "verified": [{"kappa_deg": math.degrees(h.kappa), "scale": h.sigma, "score": h.score}
                          for level in found.levels for h in level],
