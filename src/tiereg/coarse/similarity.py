@@ -176,18 +176,21 @@ def frequency_search(
     mgrid = rasterize(moving, spec, stats=("median",))
     mov = prepare(mgrid["median"], mgrid.mask,
                   bandpass_sigma_cells=6.0 if robust else 0.0)
-    tried: list[tuple[float, float]] = []
-    for level in range(n_levels):
+
+    def level_candidates(level: int) -> list[tuple[float, float]]:
         s_level = sigma_range[0] * 2.0**level
         grid = ref.grid(tie_cell * s_level)
         s_eff = grid.spec.cell_size / tie_cell  # the quantized cell's own scale
         rgrid = prepare(grid["mean"], grid.mask, bandpass_sigma_cells=6.0 if robust else 0.0)
         if rgrid.support.sum() < 12:
-            continue
-        for c in rotation_scale_candidates(rgrid, mov, method=name, robust=robust):
-            sigma = c.scale * s_eff
-            if sigma_range[0] / 1.5 <= sigma <= sigma_range[1] * 1.5:
-                tried.append((c.theta, sigma))
+            return []
+        found = ((c.theta, c.scale * s_eff)
+                 for c in rotation_scale_candidates(rgrid, mov, method=name, robust=robust))
+        return [(theta, sigma) for theta, sigma in found
+                if sigma_range[0] / 1.5 <= sigma <= sigma_range[1] * 1.5]
+
+    tried = [c for level in map_threads(level_candidates, range(n_levels), workers=None)
+             for c in level]
     scored = map_threads(lambda kappa_sigma: scorer.score(*kappa_sigma), tried, workers=None)
     hyps = [h for h in scored if h is not None]
     return verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=6,
