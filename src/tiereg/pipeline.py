@@ -217,7 +217,7 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
     results: list[RegistrationResult] = []
     for T_level in levels:
         r = register(mov_src, results[0].reference if results else reference, initial=T_level,
-                     level="none", **options)
+                     level="none", free_tilt=vertical.source == "points", **options)
         results.append(replace(r, T_initial=None))
     best = max(results, key=lambda r: (r.confident, r.confidence))
     reasons = list(best.reasons)
@@ -279,6 +279,7 @@ def register(
     cell_size: float | None = None,
     initial: Transform | np.ndarray | None = None,
     level: str = "auto",
+    free_tilt: bool = False,
     moving_format: str | None = None,
     reference_format: str | None = None,
     progress: ProgressFactory | None = None,
@@ -310,6 +311,9 @@ def register(
         ``"auto"`` (from the cameras of a COLMAP or Bundler model, else from the points when
         their dominant plane is clearly tilted), ``"cameras"``, ``"points"`` or ``"none"``. Not
         used with ``initial`` or ``coarse="none"``.
+    free_tilt
+        The moving points may lean by a degree or more (a model levelled from its own points, as
+        ``level`` does): the coarse stage then judges poses by the heights after a fitted plane.
 
     Returns
     -------
@@ -386,7 +390,7 @@ def register(
             coarse_result = register_translation(mov_local, grid, reference_fine=fine_grid)
         else:  # search, auto
             coarse_result = register_similarity(mov_local, ref, tie_cell=tie_cell,
-                                                method=coarse)
+                                                method=coarse, free_tilt=free_tilt)
         T_local = coarse_result.T_ref_mov
         coarse_result = replace(coarse_result,
                                 T_ref_mov=_to_world(T_local, o_ref, o_mov) @ T_start)

@@ -13,6 +13,7 @@ when the file records returns.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -37,6 +38,8 @@ class Reference:
     base: Grid = field(repr=False)
     first_returns_only: bool
     _cache: dict[int, Grid] = field(default_factory=dict, repr=False, compare=False)
+    # the coarse stage's threads ask for grids side by side
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
     source_args: tuple[str, ...] = ()  # the paths it was read from, when known
 
     @property
@@ -56,11 +59,12 @@ class Reference:
         a multiple of that cell, like :meth:`GridSpec.from_bounds`.
         """
         k = max(1, int(round(cell_size / self.base_cell)))
-        cached = self._cache.get(k)
-        if cached is None or not set(stats) <= set(cached.stats):
-            wanted = tuple({*stats, *(cached.stats if cached else ())})
-            self._cache[k] = aggregate(self.base, k, stats=wanted)
-        return self._cache[k]
+        with self._lock:
+            cached = self._cache.get(k)
+            if cached is None or not set(stats) <= set(cached.stats):
+                wanted = tuple({*stats, *(cached.stats if cached else ())})
+                self._cache[k] = aggregate(self.base, k, stats=wanted)
+            return self._cache[k]
 
     def local_chunks(self) -> Iterator[np.ndarray]:
         """The reference points again, chunk by chunk, in local coordinates (first returns when

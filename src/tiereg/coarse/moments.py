@@ -33,7 +33,7 @@ from ..grid import GridSpec, rasterize
 from ..reference import Reference
 from .fourier_mellin import _taper
 from .preprocess import Prepared, prepare
-from .search import Scorer, SearchResult, verify_candidates
+from .search import HeightCheck, Scorer, SearchResult, verify_candidates
 
 REFERENCE_CELLS = 256  # per side of the reference grid whose spectrum is taken
 KAPPA_OFFSETS_DEG = (-15.0, -7.5, 0.0, 7.5, 15.0)  # the orientations are good to about 10 deg
@@ -84,9 +84,11 @@ def moments_search(
     *,
     tie_cell: float,
     sigma_range: tuple[float, float] = (0.25, 4.0),
+    heights: HeightCheck | None = None,
 ) -> tuple[SearchResult, dict]:
     """Candidates from the spectra's orientations and a scale scan, verified and refined;
-    ``moving`` is local (centred) model coordinates. Returns the result and what the
+    ``moving`` is local (centred) model coordinates; ``heights`` as in
+    :func:`~tiereg.coarse.search.verify_candidates`. Returns the result and what the
     orientations were (for the coarse stage's details)."""
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
     mgrid = rasterize(moving, GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], tie_cell),
@@ -105,7 +107,7 @@ def moments_search(
     hyps = [h for k in kappas for s in sigmas if (h := scorer.score(k, float(s))) is not None]
     found = verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=4,
                               log_sigma=math.log(SCALE_RATIO),
-                              n_tried=len(kappas) * len(sigmas))
+                              n_tried=len(kappas) * len(sigmas), heights=heights)
     info = {"heading_from_moments_deg": math.degrees(kappa0) % 180.0,
             "anisotropy_moving": o_mov.anisotropy, "anisotropy_reference": o_ref.anisotropy}
     return found, info
