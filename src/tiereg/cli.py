@@ -112,6 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--level", choices=("auto", "cameras", "points", "none"), default="auto",
                    help="vertical of a model in any orientation: from a COLMAP/Bundler model's "
                    "cameras, from the points' dominant plane, or none (default auto)")
+    p.add_argument("--free-tilt", action="store_true",
+                   help="the moving points may lean by a degree or more (a model levelled from "
+                   "its own points; --level does this by itself): heights are compared after "
+                   "a fitted plane")
     p.add_argument("--initial", metavar="TRANSFORM",
                    help="a starting pose (RESULT.json or a 16-number matrix file); with "
                    "--coarse none the fine stage starts from it")
@@ -253,7 +257,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
     initial = _load_transform(args.initial) if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
                       cell_size=args.cell_size, initial=initial, level=args.level,
-                      moving_format=args.moving_format,
+                      free_tilt=args.free_tilt, moving_format=args.moving_format,
                       reference_format=args.reference_format,
                       progress=_progress_factory(args.quiet))
     if args.output_points:
