@@ -233,7 +233,7 @@ def _pose(true, *, turn_deg=0.0, rescale=1.0, score=0.0):
 @pytest.fixture(scope="module")
 def small_block(mountains):
     """A block of about 500 tie points over part of the mountains, in feet."""
-    spec, world, ref = mountains
+    _, world, ref = mountains
     hidden = HiddenTransform(heading_deg=200.0, scale=3.2808, model_origin=(0.0, 0.0, 0.0))
     small = {**SMALL, "block": ImageBlock(side_m=1200.0)}
     scene = make_scene(SceneSpec(kind="mountains", seed=3, hidden=hidden, overlap=0.8, **small),
@@ -253,7 +253,7 @@ def test_height_residual_ratio_knows_the_pose_that_explains_the_heights(small_bl
     assert right < 0.3
     # unrelated heights: about sqrt(2); 5 degrees or 10 % off already misplace the points on
     # this steep relief (measured 1.28, 0.91 and 0.89 against 0.20 at the truth)
-    for wrong in (dict(turn_deg=90.0), dict(turn_deg=5.0), dict(rescale=1.1)):
+    for wrong in ({"turn_deg": 90.0}, {"turn_deg": 5.0}, {"rescale": 1.1}):
         assert heights.residual_ratio(moving, _pose(true, **wrong)) > 3 * right
 
 

@@ -35,9 +35,9 @@ from .result import Candidate, CoarseResult
 from .search import (
     HEIGHTS,
     MIN_OVERLAP,
-    HeightCheck,
     OBJECTS,
     Channel,
+    HeightCheck,
     Hypothesis,
     NoOverlap,
     Scorer,
