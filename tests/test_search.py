@@ -287,9 +287,30 @@ def test_choose_takes_the_pose_the_heights_confirm_over_a_better_correlation(sma
                         heights=heights, n_hypotheses=2)
     assert by_heights.best.kappa == right.kappa and by_heights.runner_up is wrong
     assert rival_ratio(by_heights) == pytest.approx(0.5)  # a better-correlated rival: not sure
+    assert by_heights.alternative.best is wrong  # for the continuous fit to decide
     by_correlation = choose(moving, [wrong, right], [wrong, right], pairs, tie_cell=40.0,
                             heights=None, n_hypotheses=2)
     assert by_correlation.best is wrong and rival_ratio(by_correlation) == pytest.approx(2.0)
+
+
+def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(small_block):
+    from dataclasses import replace
+
+    from tiereg.coarse.search import SearchResult
+    from tiereg.coarse.similarity import FitCache, judge_choice
+
+    scene, ref = small_block
+    moving, true = _local_truth(scene, ref)
+    right, wrong = _pose(true, score=1.0), _pose(true, turn_deg=90.0, rescale=0.6, score=2.0)
+    by_correlation = SearchResult(right, wrong, right, ((right, wrong),), 2)
+    by_heights = replace(by_correlation, best=wrong, runner_up=right, sweep_best=wrong,
+                         alternative=by_correlation)
+    for found in (by_heights, replace(by_correlation, alternative=by_heights)):
+        result = judge_choice(moving, found, method="search", tie_cell=150.0,
+                              fits=FitCache.of(ref))
+        assert result.details["search_best"]["kappa_deg"] == pytest.approx(
+            np.degrees(right.kappa))
+        assert result.details["residual_ratio"] < 0.3
 
 
 def test_a_small_block_in_feet_is_found(small_block):
