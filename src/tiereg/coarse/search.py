@@ -365,14 +365,15 @@ def choose(
     ``alternative``, for the continuous fit to decide (a suburb of 1,700 tie points: the
     correlation right, the heights at the grid's poses not).
     """
-    def answer(best: Hypothesis, parent: Hypothesis) -> SearchResult:
+    def answer(best: Hypothesis, parent: Hypothesis,
+               pairs: list[tuple[Hypothesis, Hypothesis]]) -> SearchResult:
         rival = next((h for h in ranked if h.distinct_from(
             parent, kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
             shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * parent.sigma)), None)
         refined = tuple(sorted((r for r, _ in pairs), key=lambda h: -h.score))
         return SearchResult(best, rival, parent, (tuple(top), refined), n_hypotheses)
 
-    by_correlation = answer(*max(pairs, key=lambda rp: rp[0].score))
+    by_correlation = answer(*max(pairs, key=lambda rp: rp[0].score), pairs)
     if heights is None:
         return by_correlation
 
@@ -387,7 +388,7 @@ def choose(
     other = by_correlation.sweep_best
     same = (parent.kappa, parent.sigma, parent.tx, parent.ty) == (other.kappa, other.sigma,
                                                                   other.tx, other.ty)
-    return replace(answer(best, parent), alternative=None if same else by_correlation)
+    return replace(answer(best, parent, pairs), alternative=None if same else by_correlation)
 
 
 def distinct_top(hyps: list[Hypothesis], k: int, *, kappa_deg: float, log_sigma: float,
