@@ -80,6 +80,29 @@ def test_masked_ncc_finds_a_known_shift_under_a_sparse_mask(rng):
     assert ncc[peak] == pytest.approx(1.0)
 
 
+def test_masked_ncc_in_single_precision_agrees_with_double(rng):
+    # grids of a sweep's size: a band-passed reference of heights in metres with a hole, and a
+    # sparse stack of tie-point grids, 45 % of cells known
+    from scipy import ndimage
+
+    field = rng.normal(size=(260, 240)) * 3.0
+    fr = field - ndimage.gaussian_filter(field, 6.0)
+    mr = np.ones(fr.shape, bool)
+    mr[100:140, 30:90] = False
+    mm = rng.random((4, 90, 80)) < 0.45
+    fm = np.stack([fr[20 + 30 * k : 110 + 30 * k, 40:120] for k in range(4)])
+    fm = np.where(mm, fm + rng.normal(scale=0.3, size=fm.shape), 0.0)
+    double, n_double = masked_ncc(fr, mr, fm, mm)
+    single, n_single = masked_ncc(fr, mr, fm, mm, single=True)
+    assert single.dtype == np.float32
+    assert np.array_equal(n_single, n_double)
+    enough = n_double >= 50  # the sweep scores no fewer common cells
+    assert np.abs(single - double)[enough].max() < 1e-4
+    for k in range(4):  # and the peak is where the moving grid was cut from
+        peak = np.unravel_index(np.argmax(np.where(enough[k], single[k], -1)), single[k].shape)
+        assert shift_of_index(peak, mm.shape[1:]) == (20 + 30 * k, 40)
+
+
 @pytest.mark.parametrize("normalization", ["phase", "pomf", "none"])
 def test_cross_power_correlation_finds_a_known_shift(rng, normalization):
     ref = rng.normal(size=(64, 64))

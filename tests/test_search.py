@@ -81,7 +81,8 @@ def test_scores_near_a_position_are_the_full_surfaces_scores_there(mountains):
                         for i, j in zip(rows.ravel(), cols.ravel())])
         assert np.allclose(idx, np.rint(idx))  # the window's shifts are the full lattice's
         i, j = np.rint(idx).astype(int).T
-        assert np.allclose(w.score.ravel(), f.score[i, j], atol=1e-9)
+        # the sweep correlates in single precision: the same scores to its round-off
+        assert np.allclose(w.score.ravel(), f.score[i, j], atol=1e-5)
     local = scorer.score_many(kappas[:1], 1.0, near=(best.tx + 70.0, best.ty - 50.0))[0]
     assert (local.tx, local.ty, local.score) == pytest.approx((best.tx, best.ty, best.score))
 

@@ -46,17 +46,17 @@ class _Correlator:
     """
 
     def __init__(self, ref_shape: tuple[int, int], mov_shape: tuple[int, int], *,
-                 mode: Mode = "full"):
+                 mode: Mode = "full", dtype: type = np.float64):
         if mode == "valid" and (ref_shape[0] < mov_shape[0] or ref_shape[1] < mov_shape[1]):
             raise ValueError(f"valid mode needs a reference ({ref_shape}) at least as large as "
                              f"the moving image ({mov_shape})")
-        self.ref_shape, self.mov_shape, self.mode = ref_shape, mov_shape, mode
+        self.ref_shape, self.mov_shape, self.mode, self.dtype = ref_shape, mov_shape, mode, dtype
         self.out = surface_shape(ref_shape, mov_shape, mode=mode)
         span = ref_shape if mode == "valid" else self.out
         self.fft_shape = tuple(fft.next_fast_len(n, real=True) for n in span)
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
-        return fft.rfft2(image, s=self.fft_shape)
+        return fft.rfft2(np.asarray(image, dtype=self.dtype), s=self.fft_shape)
 
     def correlate(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
         circ = fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape)
@@ -107,7 +107,7 @@ class MaskedReference:
         self._spectra: dict[tuple[tuple[int, int], tuple[int, int]], tuple] = {}
 
     def spectra(self, corr: _Correlator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        key = (corr.mov_shape, corr.fft_shape)
+        key = (corr.mov_shape, corr.fft_shape, corr.dtype)
         if key not in self._spectra:
             self._spectra[key] = (corr.spectrum(self.image), corr.spectrum(self.mask),
                                   corr.spectrum(self.image * self.image))
@@ -121,6 +121,7 @@ def masked_ncc(
     moving_mask: np.ndarray,
     *,
     mode: Mode = "full",
+    single: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Masked normalized cross-correlation at every shift (Padfield 2012, IEEE TIP 21(5)).
 
@@ -131,7 +132,11 @@ def masked_ncc(
 
         ncc = (sum f_r f_m - S_r S_m / n) / sqrt((sum f_r^2 - S_r^2/n) (sum f_m^2 - S_m^2/n))
 
-    Shifts with fewer than 3 common cells get ``ncc = 0``. ``reference`` may be a
+    Shifts with fewer than 3 common cells, or a variance within the round-off of its sums, get
+    ``ncc = 0``. ``single``: the transforms in single precision (float32), for sweeps that rank
+    many hypotheses: about 1.5 times faster, and the NCC within 1e-4 of double precision (the
+    sums are of band-passed values about zero, so their round-off stays small; measured in the
+    tests); the surfaces then come back in float32. ``reference`` may be a
     :class:`MaskedReference` (then ``reference_mask`` is ignored) to reuse its spectra.
     ``moving`` and ``moving_mask`` may be a stack ``(k, rows, cols)`` of images of one shape
     (say, one per heading): then the surfaces are ``(k, ...)``, each as if computed alone.
@@ -141,7 +146,8 @@ def masked_ncc(
         reference, reference_mask)
     mm = np.asarray(moving_mask, dtype=np.float64)
     fm = np.where(mm > 0, moving, 0.0)
-    corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode)
+    dtype = np.float32 if single else np.float64
+    corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode, dtype=dtype)
     s_fr, s_mr, s_fr2 = ref.spectra(corr)
     s_fm, s_mm = corr.spectrum(fm), corr.spectrum(mm)
     n = np.round(corr.correlate(s_mr, s_mm))
@@ -156,10 +162,13 @@ def masked_ncc(
         var_r = np.maximum(sum_rr - sum_r**2 / n_safe, 0.0)
         var_m = np.maximum(sum_mm - sum_m**2 / n_safe, 0.0)
         denom = np.sqrt(var_r * var_m)
+        # a variance within the round-off of its sums is no variance (a flat patch)
+        tol = 1e3 * np.finfo(dtype).eps
         peak_rr = np.abs(sum_rr).max(axis=(-2, -1), keepdims=True)
-        tol = 1e3 * np.finfo(np.float64).eps * np.maximum(peak_rr, 1.0)
-        ncc = np.where((n >= 3) & (denom > tol), num / np.where(denom > 0, denom, 1.0), 0.0)
-    return np.clip(ncc, -1.0, 1.0), n
+        peak_mm = np.abs(sum_mm).max(axis=(-2, -1), keepdims=True)
+        varied = (var_r > tol * peak_rr) & (var_m > tol * peak_mm) & (n >= 3)
+        ncc = np.where(varied, num / np.where(denom > 0, denom, 1.0), 0.0)
+    return np.clip(ncc, -1.0, 1.0, out=ncc), n
 
 
 MAX_SCORED_NCC = 0.999  # keeps the Fisher transform finite

@@ -223,14 +223,14 @@ class Scorer:
         mov = prepare(tall[stat].reshape(stack), tall.mask.reshape(stack),
                       bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
         n_support = mov.support.sum(axis=(-2, -1))
-        ncc, n = masked_ncc(mref, None, mov.image, mov.support, mode=mode)
+        ncc, n = masked_ncc(mref, None, mov.image, mov.support, mode=mode, single=True)
         for j in range(len(chunk)):
             if n_support[j] < MIN_SUPPORT_CELLS:
                 yield None
                 continue
             overlap = n[j] / float(n_support[j])
             valid = (overlap >= MIN_OVERLAP) & (n[j] >= MIN_SUPPORT_CELLS)
-            score = np.full(ncc[j].shape, -np.inf)
+            score = np.full(ncc[j].shape, -np.inf, dtype=ncc.dtype)
             score[valid] = match_score(ncc[j][valid], overlap[valid])
             yield score, ncc[j], overlap
 
