@@ -333,10 +333,11 @@ def fill_normalized(
     support)``; ``filled`` is 0 outside the support. A stack ``(..., rows, cols)`` is filled
     image by image.
     """
-    m = np.asarray(mask, dtype=np.float64)
+    mask = np.asarray(mask, bool)
+    m = mask.astype(np.float64)
     g = np.where(mask, np.nan_to_num(np.asarray(values, dtype=np.float64)), 0.0)
     sigma = (0.0,) * (g.ndim - 2) + (sigma_cells, sigma_cells)  # a stack: each image alone
-    num = ndimage.gaussian_filter(g * m, sigma, mode="constant", truncate=3.0)
+    num = ndimage.gaussian_filter(g, sigma, mode="constant", truncate=3.0)  # g is 0 off the mask
     den = ndimage.gaussian_filter(m, sigma, mode="constant", truncate=3.0)
     support = den > min_support
     filled = np.zeros_like(g)

@@ -59,8 +59,12 @@ class _Correlator:
         return fft.rfft2(np.asarray(image, dtype=self.dtype), s=self.fft_shape)
 
     def correlate(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
-        circ = fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape)
-        return self.to_full(circ)
+        return self.to_full(self.circular(spec_ref, spec_mov))
+
+    def circular(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
+        """The correlation at every shift of the transform's period (:meth:`to_full` orders
+        and crops it): pointwise arithmetic can work on it first, and order the result once."""
+        return fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape)
 
     def to_full(self, circ: np.ndarray) -> np.ndarray:
         if self.mode == "valid":
@@ -150,25 +154,25 @@ def masked_ncc(
     corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode, dtype=dtype)
     s_fr, s_mr, s_fr2 = ref.spectra(corr)
     s_fm, s_mm = corr.spectrum(fm), corr.spectrum(mm)
-    n = np.round(corr.correlate(s_mr, s_mm))
-    sum_r = corr.correlate(s_fr, s_mm)
-    sum_m = corr.correlate(s_mr, s_fm)
-    sum_rm = corr.correlate(s_fr, s_fm)
-    sum_rr = corr.correlate(s_fr2, s_mm)
-    sum_mm = corr.correlate(s_mr, corr.spectrum(fm * fm))
+    n = np.rint(corr.circular(s_mr, s_mm))
+    sum_r = corr.circular(s_fr, s_mm)
+    sum_m = corr.circular(s_mr, s_fm)
+    sum_rm = corr.circular(s_fr, s_fm)
+    sum_rr = corr.circular(s_fr2, s_mm)
+    sum_mm = corr.circular(s_mr, corr.spectrum(fm * fm))
     with np.errstate(invalid="ignore", divide="ignore"):
-        n_safe = np.maximum(n, 1.0)
-        num = sum_rm - sum_r * sum_m / n_safe
-        var_r = np.maximum(sum_rr - sum_r**2 / n_safe, 0.0)
-        var_m = np.maximum(sum_mm - sum_m**2 / n_safe, 0.0)
-        denom = np.sqrt(var_r * var_m)
+        inv_n = 1.0 / np.maximum(n, 1.0)
+        num = sum_rm - sum_r * sum_m * inv_n
+        var_r = sum_rr - sum_r * sum_r * inv_n
+        var_m = sum_mm - sum_m * sum_m * inv_n
         # a variance within the round-off of its sums is no variance (a flat patch)
         tol = 1e3 * np.finfo(dtype).eps
         peak_rr = np.abs(sum_rr).max(axis=(-2, -1), keepdims=True)
         peak_mm = np.abs(sum_mm).max(axis=(-2, -1), keepdims=True)
         varied = (var_r > tol * peak_rr) & (var_m > tol * peak_mm) & (n >= 3)
-        ncc = np.where(varied, num / np.where(denom > 0, denom, 1.0), 0.0)
-    return np.clip(ncc, -1.0, 1.0, out=ncc), n
+        ncc = num / np.sqrt(np.where(varied, var_r * var_m, 1.0))
+    ncc[~varied] = 0.0
+    return corr.to_full(np.clip(ncc, -1.0, 1.0, out=ncc)), corr.to_full(n)
 
 
 MAX_SCORED_NCC = 0.999  # keeps the Fisher transform finite

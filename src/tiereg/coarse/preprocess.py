@@ -37,16 +37,20 @@ def detrend_plane(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     r = (np.arange(rows, dtype=np.float64) - 0.5 * (rows - 1))[:, None]
     c = (np.arange(cols, dtype=np.float64) - 0.5 * (cols - 1))[None, :]
     m = mask.astype(np.float64)
-    basis = [np.broadcast_to(b, (rows, cols)) for b in (1.0, r, c)]
-    axes = (-2, -1)
-    AtA = np.stack([np.stack([(m * bi * bj).sum(axis=axes) for bj in basis], -1)
-                    for bi in basis], -2)
-    Atz = np.stack([(values * bi).sum(axis=axes) for bi in basis], -1)
+    # the normal equations from row and column sums: sums of m, m r, m c, m r^2, m r c, m c^2
+    # and of z, z r, z c over the valid cells
+    m_rows, m_cols, z_rows = m.sum(axis=-1), m.sum(axis=-2), values.sum(axis=-1)
+    r1, c1 = r[:, 0], c[0, :]
+    s0, sr, sc = m_rows.sum(axis=-1), m_rows @ r1, m_cols @ c1
+    srr, scc, src = m_rows @ r1**2, m_cols @ c1**2, (m @ c1) @ r1
+    AtA = np.stack([np.stack([s0, sr, sc], -1), np.stack([sr, srr, src], -1),
+                    np.stack([sc, src, scc], -1)], -2)
+    Atz = np.stack([z_rows.sum(axis=-1), z_rows @ r1, values.sum(axis=-2) @ c1], -1)
     # the pseudo-inverse gives lstsq's minimum-norm plane when the valid cells are collinear
     coef = np.einsum("...ij,...j->...i", np.linalg.pinv(AtA), Atz)
     plane = (coef[..., 0, None, None] + coef[..., 1, None, None] * r
              + coef[..., 2, None, None] * c)
-    enough = (m.sum(axis=axes) >= 3)[..., None, None]
+    enough = (s0 >= 3)[..., None, None]
     return np.where(mask & enough, values - plane, 0.0)
 
 
