@@ -12,7 +12,9 @@ are swept at level 1 too: over a few hundred cells a wrong hypothesis correlates
 as the right one does. The band-pass keeps the same width on the ground at every level
 (six tie cells): coarser sweeps smooth away what tells the right hypothesis from a wrong one.
 Cost grows with the number of hypotheses, not with the lidar: the reference grids are exact
-aggregations of one prepared base grid.
+aggregations of one prepared base grid. The correlations run in single precision
+(:func:`~tiereg.coarse.correlation.masked_ncc`): scores to about 1e-5, which ranks hypotheses
+as well, at two thirds of the time.
 """
 
 from __future__ import annotations
