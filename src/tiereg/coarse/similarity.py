@@ -151,9 +151,11 @@ def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis,
     steps = np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
                       math.radians(0.2), math.radians(0.2)])
     thin = _place(moving[:: max(1, len(moving) // START_POINTS)])  # the starts see a sample
-    fits = map_threads(lambda d: fit_to_surface(
-        thin, sampler, np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]), steps,
-        tol_fraction=1 / 16), SCALE_STARTS, workers=None)
+    # one after another: a fit is many small array operations that hold the interpreter's lock,
+    # and side by side on two threads the starts took twice as long (measured)
+    fits = [fit_to_surface(thin, sampler,
+                           np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]),
+                           steps, tol_fraction=1 / 16) for d in SCALE_STARTS]
     good = [f for f in fits if f.converged and np.isfinite(f.sigma0)] or fits
     start = min(good, key=lambda f: f.sigma0)
     place = _place(moving)
