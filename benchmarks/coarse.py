@@ -431,7 +431,7 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
         t = np.array([o.seconds for o in sel])
         ok = sum(o.correct for o in sel)
         return (f"| {name} | {len(sel)} | {ok}/{len(sel)} | {np.median(t):.2f} | "
-                f"{np.percentile(t, 90):.2f} | {t.max():.2f} |")
+                f"{np.percentile(t, 90):.2f} | {t.max():.2f} | {int((t >= 5.0).sum())} |")
 
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     lines = [
@@ -448,11 +448,16 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
             f"{k} ({v['tie_points']} tie points, cell {v['cell']:g} m)"
             for k, v in meta["scenes"].items()),
         "- the cases of `coarse.md` (the same seeds), negative cases included", "",
-        "| scene | cases | correct | median s | p90 s | max s |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| scene | cases | correct | median s | p90 s | max s | 5 s or more |",
+        "|---|---:|---:|---:|---:|---:|---:|",
         *(row(sc, [o for o in outcomes if o.case.scene == sc])
           for sc in dict.fromkeys(o.case.scene for o in outcomes)),
         row("all", outcomes), "",
+        "| scene | case | scale | overlap | correct | confident | s |",
+        "|---|---:|---:|---:|---|---|---:|",
+        *(f"| {o.case.scene} | {o.case.index % 1000} | {o.case.hidden.scale:g} | "
+          f"{o.case.overlap:.2f} | {o.correct} | {o.confident} | {o.seconds:.2f} |"
+          for o in outcomes), "",
     ]
     path.write_text("\n".join(lines))
 
