@@ -42,7 +42,7 @@ from .correlation import (
     subpixel_peak,
     surface_shape,
 )
-from .preprocess import prepare
+from .preprocess import Prepared, prepare
 
 MIN_OVERLAP = 0.3
 BANDPASS_TIE_CELLS = 6.0  # band-pass width on the ground, in tie cells, at every level
@@ -197,6 +197,8 @@ class Scorer:
                                                 shape[1] + 2 * WINDOW_CELLS)
         per_chunk = max(1, STACK_CELLS // int(np.prod(surface_shape(span, shape))))
         items = list(placed.items())
+        # the tie grids are prepared as one stack; correlated a chunk at a time, in cache
+        mov = self._prepared(items, shape, bandpass, c)
         for lo_i in range(0, len(items), per_chunk):
             chunk = items[lo_i : lo_i + per_chunk]
             if near is None:
@@ -205,28 +207,35 @@ class Scorer:
                 target, window = _window(mref, grid.spec, [sp for _, (_, sp) in chunk], shape,
                                          near)
                 mode = "valid"
-            found = self._stack(chunk, shape, target, bandpass, c, mode)
+            part = slice(lo_i, lo_i + len(chunk))
+            found = self._scores(mov.image[part], mov.support[part], target, mode)
             for (i, (_, spec)), one in zip(chunk, found):
                 if one is not None:
                     out[i] = Surface(*one, replace(spec, shape=shape), window, mode)
         return out
 
-    def _stack(self, chunk, shape, mref, bandpass, c, mode):
+    def _prepared(self, items, shape, bandpass, c) -> Prepared:
+        """The tie-point grids of ``items`` (placed points and their specs), padded to
+        ``shape``, prepared as one stack (each image as if alone)."""
         rows = shape[0]
         # image j of the stack occupies rows j*rows .. (j+1)*rows - 1 of one tall grid
-        xs = np.concatenate([xy[:, 0] - sp.x0 for _, (xy, sp) in chunk])
+        xs = np.concatenate([xy[:, 0] - sp.x0 for _, (xy, sp) in items])
         ys = np.concatenate([xy[:, 1] - sp.y0 - j * rows * c
-                             for j, (_, (xy, sp)) in enumerate(chunk)])
-        zs = np.tile(self.z, len(chunk))
+                             for j, (_, (xy, sp)) in enumerate(items)])
+        zs = np.tile(self.z, len(items))
         stat = self.channel.tie_stat
         tall = rasterize(np.column_stack([xs, ys, zs]),
-                         GridSpec(0.0, 0.0, c, (len(chunk) * rows, shape[1])), stats=(stat,))
-        stack = (len(chunk), *shape)
-        mov = prepare(tall[stat].reshape(stack), tall.mask.reshape(stack),
-                      bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
-        n_support = mov.support.sum(axis=(-2, -1))
-        ncc, n = masked_ncc(mref, None, mov.image, mov.support, mode=mode, single=True)
-        for j in range(len(chunk)):
+                         GridSpec(0.0, 0.0, c, (len(items) * rows, shape[1])), stats=(stat,))
+        stack = (len(items), *shape)
+        return prepare(tall[stat].reshape(stack), tall.mask.reshape(stack),
+                       bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
+
+    def _scores(self, image, support, mref, mode):
+        """Score, NCC and overlap surfaces of each prepared tie grid of a stack (``None`` for
+        one with too little support)."""
+        n_support = support.sum(axis=(-2, -1))
+        ncc, n = masked_ncc(mref, None, image, support, mode=mode, single=True)
+        for j in range(len(image)):
             if n_support[j] < MIN_SUPPORT_CELLS:
                 yield None
                 continue
