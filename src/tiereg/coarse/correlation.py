@@ -58,9 +58,6 @@ class _Correlator:
     def spectrum(self, image: np.ndarray) -> np.ndarray:
         return fft.rfft2(np.asarray(image, dtype=self.dtype), s=self.fft_shape)
 
-    def correlate(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
-        return self.to_full(self.circular(spec_ref, spec_mov))
-
     def circular(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
         """The correlation at every shift of the transform's period (:meth:`to_full` orders
         and crops it): pointwise arithmetic can work on it first, and order the result once."""
