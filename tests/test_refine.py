@@ -5,8 +5,9 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from tiereg.coarse.refine import fit_to_surface
+from tiereg.coarse.refine import EDGE_MARGIN_CELLS, MIN_KEPT, fit_to_surface, fit_to_surface_many
 from tiereg.grid import Grid, GridSpec
+from tiereg.robust import nmad, tukey_loss
 from tiereg.surface import SurfaceSampler
 
 
@@ -33,30 +34,82 @@ def test_sampler_matches_scipy_bilinear_and_nearest_validity():
     assert 0.5 < ok.mean() < 0.9  # the test covers both answers
 
 
-def test_fit_recovers_a_known_scale_and_shift_from_either_side():
-    # a smooth surface (metres) and points on it; the fit must not favour shrinking the block
-    shape, cell = (400, 400), 2.0
+def _smooth_block(rng, shape=(400, 400), cell=2.0):
+    """A smooth surface (metres) and 3,000 points on it, scaled 1.1 and shifted by 400 m; the
+    block reaches beyond the surface on all sides (partial overlap)."""
     yy, xx = np.mgrid[0:shape[0], 0:shape[1]] * cell
     surface = 8 * np.sin(xx / 90.0) * np.cos(yy / 70.0) + 3 * np.sin((xx + yy) / 37.0)
     grid = Grid(GridSpec(0.0, shape[0] * cell, cell, shape), np.ones(shape, np.int64),
                 {"mean": surface}, None)
     sampler = SurfaceSampler.from_grid(grid)
-    rng = np.random.default_rng(1)
-    # the block reaches beyond the surface on all sides (partial overlap)
-    p = rng.uniform(-450, 450, (3000, 2))  # model units, centred; truth: scale 1.1, shift 400
-    centre = np.array([400.0, 400.0])
-    q = 1.1 * p + centre
+    p = rng.uniform(-450, 450, (3000, 2))  # model units, centred
+    q = 1.1 * p + 400.0
     rows, cols = grid.spec.rowcol(q[:, 0], q[:, 1])
     z = ndimage.map_coordinates(surface, np.vstack([rows, cols]), order=1, mode="nearest")
-    xyz = np.column_stack([p, z / 1.1])  # heights in model units too
+    z = z + rng.normal(0, 0.3, len(z))  # heights in model units too, with noise
 
     def place(params):
         s = math.exp(params[0])
-        return np.column_stack([s * p + params[1:3], s * xyz[:, 2]])
+        return np.column_stack([s * p + params[1:3], s * z / 1.1])
 
+    return sampler, place
+
+
+def test_fit_recovers_a_known_scale_and_shift_from_either_side():
+    # the fit must not favour shrinking the block
+    sampler, place = _smooth_block(np.random.default_rng(1))
     for start in (1.04, 1.16):  # a few per cent small, a few per cent large
         fit = fit_to_surface(place, sampler, np.array([math.log(start), 405.0, 396.0]),
                              np.array([math.log(1.01), 1.0, 1.0]))
         assert fit.converged
         assert abs(math.exp(fit.params[0]) / 1.1 - 1) < 0.002
-        assert np.hypot(*(fit.params[1:3] - centre)) < 0.5  # metres, a quarter cell
+        assert np.hypot(*(fit.params[1:3] - 400.0)) < 0.5  # metres, a quarter cell
+
+
+def _compass_one_call_at_a_time(place, sampler, p, steps, stop):
+    """The slow, obvious compass search: one loss evaluation per call (the reference)."""
+    inner = sampler.inner(EDGE_MARGIN_CELLS)
+
+    def residuals(params):
+        pts = place(params)
+        z, deep = sampler.sample(pts[:, 0], pts[:, 1], within=inner)
+        return z - pts[:, 2], deep
+
+    r0, use = residuals(p)
+    n0, scale = use.sum(), nmad(r0[use])
+
+    def loss(params):
+        r, good = residuals(params)
+        if good.sum() < max(10, MIN_KEPT * n0):
+            return np.inf
+        return tukey_loss(r[good] - np.median(r[good]), scale).mean()
+
+    best = loss(p)
+    while np.any(steps >= stop):
+        moved = False
+        for i in np.flatnonzero(steps >= stop):
+            for sign in (1.0, -1.0):
+                trial = p.copy()
+                trial[i] += sign * steps[i]
+                if (value := loss(trial)) < best:
+                    p, best, moved = trial, value, True
+                    break
+        if not moved:
+            steps = steps / 2
+    return p
+
+
+def test_fits_in_lock_step_are_the_fits_one_at_a_time():
+    sampler, place = _smooth_block(np.random.default_rng(2))
+    steps = np.array([math.log(1.01), 1.0, 1.0])
+    starts = [np.array([math.log(s), 400.0 + dx, 400.0 - dx])
+              for s, dx in ((1.0, 6.0), (1.15, -3.0), (1.05, 0.0), (0.97, 9.0))]
+    starts.append(np.array([0.0, 3000.0, 3000.0]))  # off the surface: no points, no fit
+    fits = fit_to_surface_many(place, sampler, starts, steps, tol_fraction=1 / 64)
+    for start, fit in zip(starts[:-1], fits):
+        alone = _compass_one_call_at_a_time(place, sampler, start.copy(), steps.copy(),
+                                            steps / 64)
+        assert fit.converged and fit.iterations > 3
+        assert np.allclose(fit.params, alone, rtol=0, atol=1e-9)
+    assert {round(math.exp(f.params[0]), 3) for f in fits[:-1]} == {1.1}  # all found the truth
+    assert fits[-1].n_used == 0 and not fits[-1].converged and np.isnan(fits[-1].sigma0)

@@ -23,5 +23,5 @@ def nmad(values: np.ndarray) -> float:
 def tukey_loss(residuals: np.ndarray, scale: float, *, c: float = 4.685) -> np.ndarray:
     """Tukey's biweight loss ``(c^2/6)(1 - (1 - (r/(c*scale))^2)^3)``, bounded at ``c^2/6``:
     a blunder costs a constant."""
-    a = np.clip(np.abs(residuals) / (c * max(scale, 1e-12)), 0.0, 1.0)
+    a = np.clip(np.abs(residuals) / (c * np.maximum(scale, 1e-12)), 0.0, 1.0)
     return (c**2 / 6.0) * (1.0 - (1.0 - a**2) ** 3)

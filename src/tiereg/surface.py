@@ -58,13 +58,15 @@ class SurfaceSampler:
         h, w = self.values.shape
         inside = (rows >= 0) & (rows <= h - 1) & (cols >= 0) & (cols <= w - 1)
         r0, c0, r1, c1, fr, fc = self._cell(rows, cols)
-        v = self.values
-        z = ((v[r0, c0] * (1 - fc) + v[r0, c1] * fc) * (1 - fr)
-             + (v[r1, c0] * (1 - fc) + v[r1, c1] * fc) * fr)
+        # flat indices: one gather per corner (the fits sample thousands of times)
+        v = self.values.ravel()
+        top, bottom = r0 * w, r1 * w
+        z = ((v.take(top + c0) * (1 - fc) + v.take(top + c1) * fc) * (1 - fr)
+             + (v.take(bottom + c0) * (1 - fc) + v.take(bottom + c1) * fc) * fr)
         rn = np.clip(np.rint(rows), 0, h - 1).astype(np.intp)
         cn = np.clip(np.rint(cols), 0, w - 1).astype(np.intp)
         mask = self.valid if within is None else within
-        return z, inside & mask[rn, cn]
+        return z, inside & mask.ravel().take(rn * w + cn)
 
     def gradient(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(dZ/dx, dZ/dy)`` of the bilinear surface at the positions (per cell, constant)."""

@@ -6,7 +6,7 @@ Vertical distances of the points to the surface (least z-difference, Rosenholm &
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,35 +67,79 @@ def fit_to_surface(
     :data:`EDGE_MARGIN_CELLS` inside the surface there; a pose that loses more than
     ``1 - MIN_KEPT`` of the starting points is refused.
     """
-    p0 = np.asarray(initial, dtype=np.float64)
-    steps = np.asarray(steps, dtype=np.float64).copy()
-    stop = steps * tol_fraction
+    return fit_to_surface_many(place, sampler, [initial], steps, tol_fraction=tol_fraction,
+                               max_iterations=max_iterations)[0]
 
+
+def fit_to_surface_many(
+    place: Callable[[np.ndarray], np.ndarray],
+    sampler: SurfaceSampler,
+    initials: list[np.ndarray],
+    steps: np.ndarray,
+    *,
+    tol_fraction: float = 1 / 256,
+    max_iterations: int = 600,
+) -> list[SurfaceFit]:
+    """:func:`fit_to_surface` from each of several starts: the same fits as one after another,
+    run in lock-step so that each round samples the surface once for the next trial pose of
+    every unfinished start (a fit is thousands of small evaluations, whose cost is mostly the
+    interpreter's per-call overhead)."""
+    steps = np.asarray(steps, dtype=np.float64)
     # only points well inside the surface count, judged at each evaluated pose: a fixed set
     # would penalise moves that push points out but not moves that pull others in, which biases
     # scale and shift (a shrinking block keeps all its points); the loss is a mean over the
     # points that count, so neither direction gains by changing how many there are
     inner = sampler.inner(EDGE_MARGIN_CELLS)
 
-    def residuals(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pts = place(params)
-        z, deep = sampler.sample(pts[:, 0], pts[:, 1], within=inner)
-        return z - pts[:, 2], deep
+    def residuals(params: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """``(K, N)`` residuals ``Z - z`` and whether each point counts, for ``K`` poses."""
+        pts = np.stack([place(p) for p in params])
+        z, deep = sampler.sample(pts[..., 0].ravel(), pts[..., 1].ravel(), within=inner)
+        return z.reshape(pts.shape[:2]) - pts[..., 2], deep.reshape(pts.shape[:2])
 
-    r0, use = residuals(p0)
-    n0 = int(use.sum())
-    if n0 < 10:
-        return SurfaceFit(p0, float("nan"), float("nan"), n0, 0, False)
-    scale = max(nmad(r0[use]), 1e-6 * max(1.0, float(np.abs(r0[use]).max())))
+    p0 = [np.asarray(p, dtype=np.float64) for p in initials]
+    r0, use0 = residuals(p0)
+    n0 = use0.sum(axis=1)
+    scale = np.array([max(nmad(r[u]), 1e-6 * max(1.0, float(np.abs(r[u]).max(initial=0.0))))
+                      if k >= 10 else np.nan for r, u, k in zip(r0, use0, n0)])
+    n_min = np.maximum(10, MIN_KEPT * n0)
 
-    def loss(params: np.ndarray) -> float:
+    def losses(rows: list[int], params: list[np.ndarray]) -> np.ndarray:
         r, good = residuals(params)
-        if good.sum() < max(10, MIN_KEPT * n0):
-            return np.inf
-        d = r[good] - np.median(r[good])
-        return float(tukey_loss(d, scale).mean())
+        d = r - _masked_median(r, good)[:, None]
+        value = np.where(good, tukey_loss(d, scale[rows, None]), 0.0).sum(axis=1)
+        count = good.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(count >= n_min[rows], value / count, np.inf)
 
-    p, best = p0.copy(), loss(p0)
+    live = [k for k in range(len(p0)) if n0[k] >= 10]
+    searches, trials, ends = {}, {}, {}
+    for k, value in zip(live, losses(live, [p0[k] for k in live]) if live else ()):
+        searches[k] = _compass(p0[k], value, steps, steps * tol_fraction, max_iterations)
+        trials[k] = _advance(searches[k], None, ends, k)
+    while trials:
+        rows = list(trials)
+        for k, value in zip(rows, losses(rows, [trials[k] for k in rows])):
+            trials[k] = _advance(searches[k], value, ends, k)
+            if trials[k] is None:
+                del trials[k]
+
+    fits: list[SurfaceFit] = [SurfaceFit(p, float("nan"), float("nan"), int(n), 0, False)
+                              for p, n in zip(p0, n0)]
+    if live:
+        r, good = residuals([ends[k][0] for k in live])
+        for k, rk, gk in zip(live, r, good):
+            p, it, converged = ends[k]
+            tz = float(np.median(rk[gk]))
+            fits[k] = SurfaceFit(p, tz, nmad(rk[gk] - tz), int(gk.sum()), it, converged)
+    return fits
+
+
+def _compass(p: np.ndarray, best: float, steps: np.ndarray, stop: np.ndarray,
+             max_iterations: int) -> Generator[np.ndarray, float, tuple[np.ndarray, int, bool]]:
+    """The compass search of :func:`fit_to_surface`: yields trial poses, is sent their losses,
+    and returns ``(pose, iterations, converged)``. Each parameter in turn moves by its step up,
+    else down, where that lowers the loss; a round without a move halves the steps."""
     it = 0
     while np.any(steps >= stop) and it < max_iterations:
         it += 1
@@ -104,15 +148,34 @@ def fit_to_surface(
             for sign in (1.0, -1.0):
                 trial = p.copy()
                 trial[i] += sign * steps[i]
-                value = loss(trial)
+                value = yield trial
                 if value < best:
                     p, best, moved = trial, value, True
                     break
         if not moved:
             steps = steps / 2
-    r, good = residuals(p)
-    tz = float(np.median(r[good]))
-    return SurfaceFit(p, tz, nmad(r[good] - tz), int(good.sum()), it, not np.any(steps >= stop))
+    return p, it, not np.any(steps >= stop)
+
+
+def _advance(search: Generator, value: float | None, ends: dict, key: int) -> np.ndarray | None:
+    """The next trial pose of a compass search (``None``, with its end kept in ``ends``, when
+    it has finished)."""
+    try:
+        return next(search) if value is None else search.send(value)
+    except StopIteration as end:
+        ends[key] = end.value
+        return None
+
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The median of each row's values where ``mask`` is set (NaN for an empty row): the
+    ``np.median`` of the row's kept values, for all rows in one sort."""
+    count = mask.sum(axis=1)
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    rows = np.arange(len(values))
+    lo = ordered[rows, np.maximum((count - 1) // 2, 0)]
+    hi = ordered[rows, np.maximum(count // 2, 0)]
+    return np.where(count > 0, (lo + hi) / 2, np.nan)
 
 
 def refine_translation(

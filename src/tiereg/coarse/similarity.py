@@ -30,7 +30,7 @@ from ..transform import Transform, rotation_matrix
 from .fourier_mellin import rotation_scale_candidates
 from .moments import moments_search
 from .preprocess import prepare
-from .refine import SurfaceFit, fit_to_surface, height_offset
+from .refine import SurfaceFit, fit_to_surface, fit_to_surface_many, height_offset
 from .result import Candidate, CoarseResult
 from .search import (
     HEIGHTS,
@@ -151,11 +151,11 @@ def refine_pose(moving: np.ndarray, sampler: SurfaceSampler, h: Hypothesis,
     steps = np.array([math.radians(1.0), math.log(1.01), cell / 2, cell / 2,
                       math.radians(0.2), math.radians(0.2)])
     thin = _place(moving[:: max(1, len(moving) // START_POINTS)])  # the starts see a sample
-    # one after another: a fit is many small array operations that hold the interpreter's lock,
-    # and side by side on two threads the starts took twice as long (measured)
-    fits = [fit_to_surface(thin, sampler,
-                           np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0]),
-                           steps, tol_fraction=1 / 16) for d in SCALE_STARTS]
+    # in lock-step, not on threads: a fit is many small array operations that hold the
+    # interpreter's lock, and side by side on two threads the starts took twice as long
+    fits = fit_to_surface_many(
+        thin, sampler, [np.array([h.kappa, math.log(h.sigma) + d, h.tx, h.ty, 0.0, 0.0])
+                        for d in SCALE_STARTS], steps, tol_fraction=1 / 16)
     good = [f for f in fits if f.converged and np.isfinite(f.sigma0)] or fits
     start = min(good, key=lambda f: f.sigma0)
     place = _place(moving)
