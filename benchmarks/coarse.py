@@ -425,6 +425,19 @@ def plot(outcomes: list[Outcome], path: Path) -> None:
     plt.close(fig)
 
 
+def machine_speed() -> str:
+    """Two fixed workloads, best of five, so that timings from different machines compare: the
+    interpreter (a loop) and the transforms (an FFT pair) the sweep spends its time in."""
+    import timeit
+
+    loop = min(timeit.repeat("sum(range(100_000))", number=10, repeat=5)) / 10
+    fft = min(timeit.repeat("irfft2(rfft2(a))", setup="import numpy as np; from scipy.fft import "
+                            "rfft2, irfft2; a = np.random.default_rng(0).random((512, 512))",
+                            number=10, repeat=5)) / 10
+    return (f"machine speed: `sum(range(100_000))` {loop * 1e3:.2f} ms, a 512 x 512 FFT pair "
+            f"{fft * 1e3:.2f} ms (lower is faster)")
+
+
 def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float) -> None:
     """Seconds per case of auto, one case at a time with the machine's cores to itself."""
     def row(name: str, sel: list[Outcome]) -> str:
@@ -439,6 +452,7 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
         "",
         f"- date: {date}; machine: {platform.machine()}, {os.cpu_count()} cores, Python "
         f"{platform.python_version()}; total run time {seconds / 60:.1f} min",
+        f"- {meta['speed']}",
         "- one case at a time, the cores to itself (its threads use them all); the lidar is "
         "read and gridded once per scene, before the clock starts, as the acceptance asks",
         "- each case is `tiereg.overlap.check_overlap` (`tiereg overlap`): the coarse stage "
@@ -478,8 +492,10 @@ def main() -> None:
     args = parser.parse_args()
     t0 = time.perf_counter()
     if args.timing:
+        speed = machine_speed()
         outcomes, meta = run(False, with_open3d=False, workers=1, methods=("overlap",),
                              scenes=KINDS, peers=False)
+        meta["speed"] = speed
         write_timing(outcomes, meta, RESULTS / "coarse-timing.md", time.perf_counter() - t0)
         print(RESULTS / "coarse-timing.md")
         return

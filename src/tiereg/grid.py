@@ -340,6 +340,5 @@ def fill_normalized(
     num = ndimage.gaussian_filter(g, sigma, mode="constant", truncate=3.0)  # g is 0 off the mask
     den = ndimage.gaussian_filter(m, sigma, mode="constant", truncate=3.0)
     support = den > min_support
-    filled = np.zeros_like(g)
-    filled[support] = num[support] / den[support]
+    filled = np.divide(num, den, out=np.zeros_like(g), where=support)
     return filled, support
