@@ -37,6 +37,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/precision.py
 	$(BIN)/python benchmarks/control.py
 	$(BIN)/python benchmarks/orientation.py
+	$(BIN)/python benchmarks/no_overlap_power.py
 
 bench-quick: install
 	$(BIN)/python benchmarks/coarse.py --quick
