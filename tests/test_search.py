@@ -314,28 +314,6 @@ def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(smal
         assert result.details["residual_ratio"] < 0.3
 
 
-def test_a_fit_that_was_not_taken_does_not_speak_for_its_pose(small_block):
-    from dataclasses import replace
-
-    from tiereg.coarse.search import SearchResult
-    from tiereg.coarse.similarity import FitCache, _explains_better, judge
-
-    scene, ref = small_block
-    moving, true = _local_truth(scene, ref)
-    right = _pose(true, score=1.0)
-    wrong = _pose(true, turn_deg=90.0, rescale=0.6, score=2.0)
-    fits = FitCache.of(ref)
-    good = judge(moving, SearchResult(right, wrong, right, ((right,),), 2), method="search",
-                 tie_cell=150.0, fits=fits)
-    assert good.details["refinement"]["used"] and good.details["residual_ratio"] < 0.3
-    # the same residuals, but from a fit that disagreed with its search and was not taken
-    untaken = replace(good, details={**good.details, "residual_ratio": 0.5 * good.details[
-        "residual_ratio"], "refinement": {**good.details["refinement"], "used": False}})
-    assert not _explains_better(untaken, good) and _explains_better(good, untaken)
-    assert _explains_better(replace(untaken, details={**untaken.details, "refinement": {
-        **untaken.details["refinement"], "used": True}}), good)
-
-
 def test_a_small_block_in_feet_is_found(small_block):
     from tiereg.coarse.search import small_block as is_small
     from tiereg.grid import cell_size_from_density

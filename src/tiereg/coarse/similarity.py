@@ -325,13 +325,9 @@ def judge_choice(moving_xyz: np.ndarray, found: SearchResult, **options) -> Coar
 
 
 def _explains_better(a: CoarseResult, b: CoarseResult) -> bool:
-    """Whether ``a``'s pose is its continuous fit and leaves smaller height residuals than
-    ``b``'s. A fit that did not settle, or that disagrees with its search and so was not taken,
-    says nothing of the pose returned (a levelled city block: the heights' answer right with a
-    residual ratio of 0.658, lost to a wrong answer whose fit, 19 % off the grid's scale and not
-    taken, had 0.653)."""
+    """Whether ``a``'s continuous fit settled and leaves smaller height residuals than ``b``'s."""
     def ratio(r: CoarseResult) -> float:
-        return r.details["residual_ratio"] if r.details["refinement"]["used"] else math.inf
+        return r.details["residual_ratio"] if r.details["refinement"]["settled"] else math.inf
 
     return ratio(a) < ratio(b)
 
@@ -399,8 +395,7 @@ def judge(
     # heights disagrees with it (MAX_FIT_RESCALE): the grid's pose is the better guess (flat
     # farmland: the grid right to 1 %, the fit 19 % off with a residual ratio of 0.68)
     disagrees = rescaled > MAX_FIT_RESCALE and residual_ratio > trust.max_residual_ratio
-    fit_used = settled and not disagrees
-    if fit_used:
+    if settled and not disagrees:
         T = Transform.from_parameters(scale=math.exp(log_sigma), kappa=kappa, omega=omega,
                                       phi=phi, translation=(tx, ty, fit.tz))
     else:
@@ -463,7 +458,7 @@ def judge(
                            "sigma0": fit.sigma0, "n_used": fit.n_used,
                            "scale_change": math.expm1(log_sigma - math.log(best.sigma)),
                            "turn_deg": math.degrees(kappa - best.kappa), "shift_cells": moved,
-                           "reused": reused, "settled": settled, "used": fit_used},
+                           "reused": reused, "settled": settled},
             "residual_ratio": residual_ratio,
             "verified": [{"kappa_deg": math.degrees(h.kappa), "scale": h.sigma, "score": h.score,
                           **({"residual_ratio": h.residual_ratio}
