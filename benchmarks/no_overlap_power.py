@@ -57,7 +57,7 @@ def sweep_scorer(points: np.ndarray, ref: Reference, tie_cell: float, ch: Channe
 
 def hybrids(mov: np.ndarray, sampler: SurfaceSampler, rng: np.random.Generator):
     """``(points, kappa, sigma, t_xy)`` of hybrid blocks: ``mov``'s plan pattern at a random
-    pose with 30-40 % of it on the lidar, heights from the lidar there (model units)."""
+    pose with ``HYBRID_OVERLAP`` of it on the lidar, heights from the lidar there (model units)."""
     (x0, y0, x1, y1) = sampler.grid.spec.bounds
     made = tries = 0
     while made < HYBRIDS and tries < 2000:
@@ -152,17 +152,18 @@ def write(rows: list[dict], seconds: float) -> None:
         return (f"{c['rival']:.2f} | {truth} | {c['exact']:.0%} | {c['offset']:.0%}")
 
     negatives = [r for r in rows if r["negative"]]
+    lo, hi = (round(100 * f) for f in HYBRID_OVERLAP)
 
     def powered(r: dict) -> bool:
         return max(r["heights"]["offset"], r["objects"]["offset"]) >= 0.95
 
     lines = [
-        "# Could tiereg say \"no overlap\" with confidence? The sweep's power at 30 % overlap",
+        f"# Could tiereg say \"no overlap\" with confidence? The sweep's power at {lo} % overlap",
         "",
         f"- date: {date}; total run time {seconds / 60:.1f} min; "
         f"{HYBRIDS} hybrid blocks per case and channel",
         "- the coarse benchmark's synthetic cases where `auto` is not confident; a hybrid is the "
-        "case's tie points placed where 30-40 % of them land on the lidar, with its heights "
+        f"case's tie points placed where {lo}-{hi} % of them land on the lidar, with its heights "
         f"there (+{NOISE_M} m noise); *detected*: scored at its pose as the sweep scores, best "
         "shift within three sweep cells, and above the real block's best sweep score by the "
         "judge's rival ratio; *offset*: the same half a heading and half a scale step off (the "
