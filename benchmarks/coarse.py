@@ -302,6 +302,7 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
                                                      if "unavailable:" not in o.note})
     outcomes = [o for o in outcomes if o.method not in missing]
     summary = summarize(outcomes)
+    ran = {o.method for o in outcomes}
     out_dir.mkdir(parents=True, exist_ok=True)
     meta = {**meta, "date": datetime.datetime.now(datetime.timezone.utc).isoformat(
         timespec="seconds")}
@@ -318,7 +319,8 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
         "inside), random shift, "
         "overlap U(0.3, 1), small random tilt; plus one negative case per scene (tie points "
         "from another world)",
-        f"- tiereg {' and '.join(FULL_METHODS)} and the image peers run on every case; the other "
+        f"- tiereg {' and '.join(m for m in FULL_METHODS if f'tiereg {m}' in ran)} and the "
+        "image peers run on every case; the other "
         f"tiereg methods on every {SAMPLE_EVERY}rd case and the negative cases, Open3D on every "
         f"{OPEN3D_EVERY}th case (the counts show how many)",
         *([f"- re-run this time: {', '.join(sorted({o.method for o in outcomes} - set(kept)))}; "

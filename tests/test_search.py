@@ -314,6 +314,39 @@ def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(smal
         assert result.details["residual_ratio"] < 0.3
 
 
+def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
+    """Between two answers neither sure of, the pose returned speaks, not a fit that was not
+    taken (:func:`~tiereg.coarse.similarity._explains_better`)."""
+    from dataclasses import replace
+
+    from tiereg.coarse.search import HeightCheck, SearchResult
+    from tiereg.coarse.similarity import FitCache, _explains_better, judge
+
+    scene, ref = small_block
+    moving, true = _local_truth(scene, ref)
+    right = _pose(true, score=1.0)
+    wrong = _pose(true, turn_deg=90.0, rescale=0.6, score=2.0)
+    fits = FitCache.of(ref)
+
+    def judged(h, rival):
+        return judge(moving, SearchResult(h, rival, h, ((h,),), 2), method="search",
+                     tie_cell=150.0, fits=fits)
+
+    good, bad = judged(right, wrong), judged(wrong, right)
+    assert good.details["refinement"]["taken"]
+    assert good.details["pose_residual_ratio"] == good.details["residual_ratio"] < 0.3
+    assert not bad.details["refinement"]["taken"]  # a wrong pose's fit runs off
+    # then the grid's pose speaks: its heights are unrelated to the surface's (about sqrt 2)
+    grid_ratio = HeightCheck(fits.sampler).residual_ratio(moving, wrong)
+    assert bad.details["pose_residual_ratio"] == pytest.approx(grid_ratio) and grid_ratio > 0.8
+    assert _explains_better(good, bad) and not _explains_better(bad, good)
+    # however small the residuals of a fit that settled but was not taken (it disagreed with
+    # its search), they do not speak for the pose returned
+    untaken = replace(bad, details={**bad.details, "residual_ratio": 0.01, "refinement": {
+        **bad.details["refinement"], "settled": True}})
+    assert not _explains_better(untaken, good)
+
+
 def test_a_small_block_in_feet_is_found(small_block):
     from tiereg.coarse.search import small_block as is_small
     from tiereg.grid import cell_size_from_density
