@@ -14,6 +14,7 @@ offset). A "no overlap" claim would need nearly every hybrid detected, in every 
 lidar, including at the lattice offset.
 
     python benchmarks/no_overlap_power.py   # -> benchmarks/results/no-overlap-power.md
+    python benchmarks/no_overlap_power.py --overlap 0.6 0.7   # -> no-overlap-power-60-70.md
 
 Also reported per channel: the real block's rival ratio and, for positives, its exact pose's
 score over the sweep's best (above 1: the truth beats every hypothesis of the sweep's lattice, so
@@ -22,6 +23,7 @@ a finer lattice would find it).
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import math
 import sys
@@ -45,7 +47,7 @@ from tiereg.reference import Reference, prepare_reference  # noqa: E402
 from tiereg.surface import SurfaceSampler  # noqa: E402
 
 HYBRIDS = 16  # per case and channel
-HYBRID_OVERLAP = (0.3, 0.4)
+HYBRID_OVERLAP = (0.3, 0.4)  # the share of a hybrid on the lidar (the default band)
 NOISE_M = 0.5
 HALF_STEP = (math.radians(3.75), 2 ** 0.1)  # half the sweep's heading step and scale ratio
 
@@ -55,9 +57,11 @@ def sweep_scorer(points: np.ndarray, ref: Reference, tie_cell: float, ch: Channe
                   channel=replace(ch, tie_stat=ch.sweep_tie_stat))
 
 
-def hybrids(mov: np.ndarray, sampler: SurfaceSampler, rng: np.random.Generator):
+def hybrids(mov: np.ndarray, sampler: SurfaceSampler, rng: np.random.Generator,
+            band: tuple[float, float]):
     """``(points, kappa, sigma, t_xy)`` of hybrid blocks: ``mov``'s plan pattern at a random
-    pose with ``HYBRID_OVERLAP`` of it on the lidar, heights from the lidar there (model units)."""
+    pose with a share in ``band`` of it on the lidar, heights from the lidar there (model
+    units)."""
     (x0, y0, x1, y1) = sampler.grid.spec.bounds
     made = tries = 0
     while made < HYBRIDS and tries < 2000:
@@ -71,7 +75,7 @@ def hybrids(mov: np.ndarray, sampler: SurfaceSampler, rng: np.random.Generator):
             continue
         t_xy = np.array([rng.uniform(x0 - hi[0], x1 - lo[0]), rng.uniform(y0 - hi[1], y1 - lo[1])])
         z, on = sampler.sample(*(xy + t_xy).T)
-        if not HYBRID_OVERLAP[0] <= on.mean() <= HYBRID_OVERLAP[1]:
+        if not band[0] <= on.mean() <= band[1]:
             continue
         zm = mov[:, 2].copy()
         z_lidar = (z + rng.normal(0, NOISE_M, len(z))) / sigma
@@ -81,11 +85,12 @@ def hybrids(mov: np.ndarray, sampler: SurfaceSampler, rng: np.random.Generator):
         yield np.column_stack([mov[:, :2], zm]), kappa, sigma, t_xy
 
 
-def detected_share(mov, ref, sampler, tie_cell, ch, best_score, rng) -> tuple[float, float, int]:
+def detected_share(mov, ref, sampler, tie_cell, ch, best_score, rng,
+                   band) -> tuple[float, float, int]:
     """Shares of hybrids detected at their exact pose and at the lattice offset."""
     need = TRUST[ch.name].min_rival_ratio
     exact, offset = [], []
-    for pts, kappa, sigma, t_xy in hybrids(mov, sampler, rng):
+    for pts, kappa, sigma, t_xy in hybrids(mov, sampler, rng, band):
         scorer = sweep_scorer(pts, ref, tie_cell, ch)
         for out, (dk, ds) in ((exact, (0.0, 1.0)), (offset, HALF_STEP)):
             h = scorer.score(kappa + dk, sigma * ds)
@@ -96,6 +101,10 @@ def detected_share(mov, ref, sampler, tie_cell, ch, best_score, rng) -> tuple[fl
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--overlap", nargs=2, type=float, default=HYBRID_OVERLAP,
+                        metavar=("LO", "HI"), help="the hybrids' share on the lidar")
+    band = tuple(parser.parse_args().overlap)
     t_all = time.perf_counter()
     specs = {k: v for k, v in bench.scene_specs(False).items() if k in bench.KINDS}
     rows = []
@@ -135,15 +144,15 @@ def main() -> None:
                     h = sweep_scorer(mov, ref, tie_cell, ch).score(p.kappa, p.scale)
                     truth = h.score / best if h is not None else 0.0
                 exact, offset, n = detected_share(mov, ref, sampler, tie_cell, ch, best,
-                                                  hybrid_rng)
+                                                  hybrid_rng, band)
                 row[ch.name] = {"rival": rival_ratio(found), "truth": truth, "exact": exact,
                                 "offset": offset, "n": n}
             rows.append(row)
             print(name, row, file=sys.stderr, flush=True)
-    write(rows, time.perf_counter() - t_all)
+    write(rows, time.perf_counter() - t_all, band)
 
 
-def write(rows: list[dict], seconds: float) -> None:
+def write(rows: list[dict], seconds: float, band: tuple[float, float]) -> None:
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
     def cells(r: dict, ch: str) -> str:
@@ -152,7 +161,7 @@ def write(rows: list[dict], seconds: float) -> None:
         return (f"{c['rival']:.2f} | {truth} | {c['exact']:.0%} | {c['offset']:.0%}")
 
     negatives = [r for r in rows if r["negative"]]
-    lo, hi = (round(100 * f) for f in HYBRID_OVERLAP)
+    lo, hi = (round(100 * f) for f in band)
 
     def powered(r: dict) -> bool:
         return max(r["heights"]["offset"], r["objects"]["offset"]) >= 0.95
@@ -185,7 +194,8 @@ def write(rows: list[dict], seconds: float) -> None:
           f"{r['correct']} | {cells(r, 'heights')} | {cells(r, 'objects')} |" for r in rows),
         "",
     ]
-    out = bench.RESULTS / "no-overlap-power.md"
+    name = "" if band == HYBRID_OVERLAP else f"-{lo}-{hi}"
+    out = bench.RESULTS / f"no-overlap-power{name}.md"
     out.write_text("\n".join(lines))
     print(out)
 
