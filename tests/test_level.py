@@ -82,6 +82,8 @@ def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 0.5  # metres, after fine
     data = json.loads(result.to_json())
     assert data["levelling"]["tilt_deg"] > 40
+    # cameras know up from down; points try both, and not the model as it is (far from level)
+    assert data["levelling"]["tried"] == (1 if cameras else 2)
     assert data["T_initial"] is None
 
 
@@ -102,5 +104,5 @@ def test_level_mountain_blocks_stay_level():
     scene = make_scene(spec)
     assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 15  # the premise
     result = register(scene.moving, scene.lidar.xyz, fine="none")
-    assert result.confident
+    assert result.confident and result.levelling["tried"] == 3  # as it is, up, down
     assert _rms(result.T_ref_mov, scene.T_ref_mov, scene.moving) < 5.0  # metres, coarse only

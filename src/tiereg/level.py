@@ -27,6 +27,9 @@ import numpy as np
 from .transform import Transform
 
 MIN_TILT_DEG = 15.0  # points-only: a dominant plane tilted less than this is taken as level
+# points-only: a dominant plane tilted more than this is not the ground's own slope (high
+# mountains tilt it by 15-20 deg), so the model as it is cannot be level and is not tried
+MAX_GROUND_TILT_DEG = 40.0
 MAX_FLATNESS = 0.5  # smallest / middle principal spread above this: no dominant plane
 TRIM = 0.8  # the robust PCA keeps this share of the points nearest to the plane
 

@@ -25,7 +25,14 @@ from .fine import FineResult, register_fine
 from .grid import cell_size_from_density
 from .io import PointSource, open_points
 from .io.base import ArraySource
-from .level import MIN_TILT_DEG, Vertical, levelling, vertical_from_cameras, vertical_from_points
+from .level import (
+    MAX_GROUND_TILT_DEG,
+    MIN_TILT_DEG,
+    Vertical,
+    levelling,
+    vertical_from_cameras,
+    vertical_from_points,
+)
 from .points import PointSet, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats, PointResiduals
@@ -205,12 +212,13 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
 def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndarray,
                        moving: object, reference: object, **options: Any) -> RegistrationResult:
     """Level the model by ``vertical`` (both signs when it is unknown; from points, the model as
-    it is too) and register it; the answer whose registration is confident (then the more
-    confident) wins, and two confident answers that disagree are no answer. ``centre``: the
-    model's centroid, which the levelling turns about."""
+    it is too, unless its dominant plane is steeper than any ground) and register it; the answer
+    whose registration is confident (then the more confident) wins, and two confident answers
+    that disagree are no answer. ``centre``: the model's centroid, which the levelling turns
+    about."""
     ups = [np.asarray(vertical.up)] + ([] if vertical.sign_known else [-np.asarray(vertical.up)])
     levels = [levelling(up, centre) for up in ups]
-    if vertical.source == "points":
+    if vertical.source == "points" and vertical.tilt_deg <= MAX_GROUND_TILT_DEG:
         # steep ground tilts its own dominant plane (by 15-20 degrees in high mountains): the
         # model as it is may be level already
         levels.insert(0, Transform.identity())
