@@ -80,6 +80,16 @@ def test_reference_as_geotiff_dsm(tmp_path):
     assert result.inputs.reference_format == "geotiff"
 
 
+def test_json_writes_numbers_that_are_not_finite_as_null():
+    from tiereg.pipeline import dumps_json
+
+    data = {"ratio": float("inf"), "row": [1.5, float("nan")], "n": np.float64(-np.inf),
+            "deep": {"ok": np.float32(2.5), "flag": True, "count": 3}, "pair": (0.5, np.inf)}
+    assert json.loads(dumps_json(data)) == {"ratio": None, "row": [1.5, None], "n": None,
+                                            "deep": {"ok": 2.5, "flag": True, "count": 3},
+                                            "pair": [0.5, None]}
+
+
 def test_result_json_follows_the_contract():
     scene = make_scene(seed=6, T_mov_ref=SHIFT, lidar_points=100_000)
     data = json.loads(register(scene.tie_mov, scene.lidar).to_json())

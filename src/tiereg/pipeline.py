@@ -144,14 +144,25 @@ class RegistrationResult:
 
 
 def dumps_json(data: dict[str, Any]) -> str:
-    """Indented JSON with lists of numbers (matrix rows, vectors) kept on one line."""
+    """Indented JSON with lists of numbers (matrix rows, vectors) kept on one line. JSON has no
+    infinity or NaN: a number that is not finite (a ratio over nothing) is written as null."""
     import json
     import re
 
-    text = json.dumps(data, indent=2, allow_nan=False, default=_json_default)
+    text = json.dumps(_finite_or_null(data), indent=2, allow_nan=False, default=_json_default)
     number_list = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
     return number_list.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(","))
                            + "]", text)
+
+
+def _finite_or_null(o: object) -> object:
+    if isinstance(o, dict):
+        return {k: _finite_or_null(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite_or_null(v) for v in o]
+    if isinstance(o, (float, np.floating)):
+        return float(o) if np.isfinite(o) else None
+    return o
 
 
 def _json_default(o: object) -> object:
