@@ -10,6 +10,7 @@ from tiereg.coarse.correlation import (
     local_maxima,
     masked_ncc,
     match_score,
+    overlap_trim,
     peak_to_sidelobe,
     shift_of_index,
     subpixel_peak,
@@ -57,6 +58,31 @@ def test_masked_ncc_valid_mode_is_the_full_surface_where_the_moving_image_stays_
     assert np.array_equal(n, count[inside])
     assert np.allclose(ncc, ref[inside], atol=1e-9)
     assert shift_of_index((2, 3), fm.shape, mode="valid") == (2, 3)
+
+
+@pytest.mark.parametrize("trial", range(12))
+def test_a_trimmed_surface_is_the_full_one_at_every_shift_with_enough_overlap(trial):
+    """Shorter transforms (:func:`overlap_trim`) leave out only shifts where less than 30 % of
+    the moving support overlaps; every kept shift has the untrimmed values, wrap-around or not,
+    on shapes of all proportions and supports crowded to one side."""
+    rng = np.random.default_rng(trial)
+    hr, wr, hm, wm = rng.integers(4, 40, size=4)
+    fr, mr = rng.normal(size=(hr, wr)), rng.random((hr, wr)) < 0.9
+    fm, mm = rng.normal(size=(3, hm, wm)), rng.random((3, hm, wm)) < rng.uniform(0.2, 0.9)
+    mm[:, : rng.integers(0, hm // 2 + 1)] = False
+    mm[1, :, wm // 2 :] = False
+    trim = overlap_trim(mm, 0.3)
+    ncc, n = masked_ncc(fr, mr, fm, mm)
+    ncc_t, n_t = masked_ncc(fr, mr, fm, mm, trim=trim)
+    rows, cols = ncc.shape[-2:]
+    kept = np.zeros(ncc.shape, bool)
+    kept[:, trim[0] : rows - trim[0], trim[1] : cols - trim[1]] = True
+    assert np.allclose(ncc_t[kept], ncc[kept], atol=1e-9) and np.array_equal(n_t[kept], n[kept])
+    assert not ncc_t[~kept].any() and not n_t[~kept].any()
+    counted = n / np.maximum(mm.sum(axis=(-2, -1), keepdims=True), 1) >= 0.3
+    assert not (counted & ~kept).any()
+    if min(hm, wm) >= 10:
+        assert max(trim) > 0  # it does trim
 
 
 def test_masked_ncc_of_a_stack_is_each_image_alone(rng):

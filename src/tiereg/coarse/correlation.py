@@ -46,29 +46,46 @@ class _Correlator:
     """
 
     def __init__(self, ref_shape: tuple[int, int], mov_shape: tuple[int, int], *,
-                 mode: Mode = "full", dtype: type = np.float64):
+                 mode: Mode = "full", dtype: type = np.float64, trim: tuple[int, int] = (0, 0)):
         if mode == "valid" and (ref_shape[0] < mov_shape[0] or ref_shape[1] < mov_shape[1]):
             raise ValueError(f"valid mode needs a reference ({ref_shape}) at least as large as "
                              f"the moving image ({mov_shape})")
         self.ref_shape, self.mov_shape, self.mode, self.dtype = ref_shape, mov_shape, mode, dtype
         self.out = surface_shape(ref_shape, mov_shape, mode=mode)
-        span = ref_shape if mode == "valid" else self.out
+        # full mode, trimmed: the period may be shorter by the trim, for the shifts that wrap
+        # around onto the kept ones are shifts with no overlap at all (:func:`masked_ncc`)
+        self.trim = (0, 0) if mode == "valid" else tuple(
+            max(0, min(int(t), (n - 1) // 2)) for t, n in zip(trim, self.out))
+        span = ref_shape if mode == "valid" else (self.out[0] - self.trim[0],
+                                                  self.out[1] - self.trim[1])
         self.fft_shape = tuple(fft.next_fast_len(n, real=True) for n in span)
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
-        return fft.rfft2(np.asarray(image, dtype=self.dtype), s=self.fft_shape)
+        """``rfft2`` of the image zero-padded to the transform's shape; the rows, one axis at a
+        time: the padding rows are zero, so only the image's own rows need the first pass."""
+        rows = fft.rfft(np.asarray(image, dtype=self.dtype), n=self.fft_shape[1], axis=-1)
+        return fft.fft(rows, n=self.fft_shape[0], axis=-2, overwrite_x=True)
 
-    def circular(self, spec_ref: np.ndarray, spec_mov: np.ndarray) -> np.ndarray:
+    def circular(self, spec_ref: np.ndarray, conj_mov: np.ndarray) -> np.ndarray:
         """The correlation at every shift of the transform's period (:meth:`to_full` orders
-        and crops it): pointwise arithmetic can work on it first, and order the result once."""
-        return fft.irfft2(spec_ref * np.conj(spec_mov), s=self.fft_shape)
+        and crops it): pointwise arithmetic can work on it first, and order the result once.
+        ``conj_mov``: the complex conjugate of the moving image's spectrum (made once for the
+        several correlations it takes part in)."""
+        # one axis at a time: the same transform as ``irfft2``, measured a fifth faster
+        columns = fft.ifft(spec_ref * conj_mov, axis=-2, overwrite_x=True)
+        return fft.irfft(columns, n=self.fft_shape[1], axis=-1, overwrite_x=True)
 
     def to_full(self, circ: np.ndarray) -> np.ndarray:
         if self.mode == "valid":
             return circ[..., : self.out[0], : self.out[1]]
         hm, wm = self.mov_shape
-        rolled = np.roll(circ, (hm - 1, wm - 1), axis=(-2, -1))
-        return rolled[..., : self.out[0], : self.out[1]]
+        (tr, tc), (rows, cols) = self.trim, self.out
+        rolled = np.roll(circ, (hm - 1 - tr, wm - 1 - tc), axis=(-2, -1))
+        if (tr, tc) == (0, 0):
+            return rolled[..., :rows, :cols]
+        full = np.zeros((*circ.shape[:-2], rows, cols), dtype=circ.dtype)
+        full[..., tr : rows - tr, tc : cols - tc] = rolled[..., : rows - 2 * tr, : cols - 2 * tc]
+        return full
 
 
 def cross_power_correlation(
@@ -123,6 +140,7 @@ def masked_ncc(
     *,
     mode: Mode = "full",
     single: bool = False,
+    trim: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Masked normalized cross-correlation at every shift (Padfield 2012, IEEE TIP 21(5)).
 
@@ -141,35 +159,66 @@ def masked_ncc(
     :class:`MaskedReference` (then ``reference_mask`` is ignored) to reuse its spectra.
     ``moving`` and ``moving_mask`` may be a stack ``(k, rows, cols)`` of images of one shape
     (say, one per heading): then the surfaces are ``(k, ...)``, each as if computed alone.
-    ``mode``: ``"full"`` or ``"valid"`` (module docstring).
+    ``mode``: ``"full"`` or ``"valid"`` (module docstring). ``trim=(rows, cols)`` (full mode):
+    the shifts within that many of either end of an axis are not computed (``ncc = n = 0``
+    there), which shortens the transforms by as much (:func:`overlap_trim` gives the trim that
+    leaves out only shifts with too little overlap to count).
     """
     ref = reference if isinstance(reference, MaskedReference) else MaskedReference(
         reference, reference_mask)
     mm = np.asarray(moving_mask, dtype=np.float64)
     fm = np.where(mm > 0, moving, 0.0)
     dtype = np.float32 if single else np.float64
-    corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode, dtype=dtype)
+    corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode, dtype=dtype, trim=trim)
     s_fr, s_mr, s_fr2 = ref.spectra(corr)
-    s_fm, s_mm = corr.spectrum(fm), corr.spectrum(mm)
-    n = np.rint(corr.circular(s_mr, s_mm))
-    sum_r = corr.circular(s_fr, s_mm)
-    sum_m = corr.circular(s_mr, s_fm)
-    sum_rm = corr.circular(s_fr, s_fm)
-    sum_rr = corr.circular(s_fr2, s_mm)
-    sum_mm = corr.circular(s_mr, corr.spectrum(fm * fm))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inv_n = 1.0 / np.maximum(n, 1.0)
-        num = sum_rm - sum_r * sum_m * inv_n
-        var_r = sum_rr - sum_r * sum_r * inv_n
-        var_m = sum_mm - sum_m * sum_m * inv_n
-        # a variance within the round-off of its sums is no variance (a flat patch)
-        tol = 1e3 * np.finfo(dtype).eps
-        peak_rr = np.abs(sum_rr).max(axis=(-2, -1), keepdims=True)
-        peak_mm = np.abs(sum_mm).max(axis=(-2, -1), keepdims=True)
-        varied = (var_r > tol * peak_rr) & (var_m > tol * peak_mm) & (n >= 3)
-        ncc = num / np.sqrt(np.where(varied, var_r * var_m, 1.0))
-    ncc[~varied] = 0.0
+    # conjugated once: each takes part in several correlations
+    c_fm, c_mm, c_fm2 = (np.conj(sp, out=sp) for sp in map(corr.spectrum, (fm, mm, fm * fm)))
+    n = np.rint(corr.circular(s_mr, c_mm))
+    sum_r = corr.circular(s_fr, c_mm)
+    sum_m = corr.circular(s_mr, c_fm)
+    sum_rm = corr.circular(s_fr, c_fm)
+    sum_rr = corr.circular(s_fr2, c_mm)
+    sum_mm = corr.circular(s_mr, c_fm2)
+    # a variance within the round-off of its sums is no variance (a flat patch)
+    tol = 1e3 * np.finfo(dtype).eps
+    floor_rr = tol * np.abs(sum_rr).max(axis=(-2, -1), keepdims=True)
+    floor_mm = tol * np.abs(sum_mm).max(axis=(-2, -1), keepdims=True)
+    # the centred sums, in place where a sum is not needed again (arrays of the surfaces' size)
+    inv_n = np.reciprocal(np.maximum(n, 1.0))
+    mean_r = sum_r * inv_n
+    mean_m = np.multiply(sum_m, inv_n, out=inv_n)
+    num = np.subtract(sum_rm, mean_r * sum_m, out=sum_rm)
+    var_r = np.subtract(sum_rr, np.multiply(mean_r, sum_r, out=mean_r), out=sum_rr)
+    var_m = np.subtract(sum_mm, np.multiply(mean_m, sum_m, out=mean_m), out=sum_mm)
+    varied = (var_r > floor_rr) & (var_m > floor_mm) & (n >= 3)
+    denom = np.sqrt(np.multiply(var_r, var_m, out=var_r), out=var_r, where=varied)
+    ncc = np.divide(num, denom, out=np.zeros_like(num), where=varied)
     return corr.to_full(np.clip(ncc, -1.0, 1.0, out=ncc)), corr.to_full(n)
+
+
+def overlap_trim(support: np.ndarray, min_overlap: float) -> tuple[int, int]:
+    """The ``trim`` of :func:`masked_ncc` that leaves out only shifts at which less than
+    ``min_overlap`` of the moving support (a stack: of each image's) can overlap the reference.
+
+    At the ``t``-th shift from either end of an axis only the ``t`` outermost rows (columns) of
+    the moving image overlap the reference; the cells they hold bound the overlap. A shift whose
+    rows hold less than ``min_overlap`` of the support is left out, at both ends alike (the
+    fewer of the two, and of a stack's images). Shortening the period by the trim wraps onto each
+    kept shift only shifts beyond the far end, which overlap nothing.
+    """
+    support = np.asarray(support, bool).reshape(-1, *np.shape(support)[-2:])
+    total = support.sum(axis=(-2, -1)).astype(np.float64)
+    support, total = support[total > 0], total[total > 0]
+    if len(total) == 0 or min_overlap <= 0:
+        return (0, 0)
+    need = (min_overlap - 1e-6) * total[:, None]  # a hair under: never trims a counted shift
+    trim = []
+    for axis in (-1, -2):  # row sums give the rows' trim, column sums the columns'
+        lines = support.sum(axis=axis)
+        first = np.argmax(np.cumsum(lines, axis=-1) >= need, axis=-1)
+        last = np.argmax(np.cumsum(lines[:, ::-1], axis=-1) >= need, axis=-1)
+        trim.append(int(min(first.min(), last.min())))
+    return (trim[0], trim[1])
 
 
 MAX_SCORED_NCC = 0.999  # keeps the Fisher transform finite

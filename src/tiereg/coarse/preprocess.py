@@ -61,17 +61,22 @@ def prepare(
     fill_sigma_cells: float = 1.0,
     bandpass_sigma_cells: float = 4.0,
     clip_nmad: float = 0.0,
+    within: np.ndarray | None = None,
 ) -> Prepared:
     """Detrend, fill (normalized convolution), band-pass (DoG) and zero outside the support.
 
     ``clip_nmad > 0`` clips the band-passed values at that many NMADs of the support's values
     (winsorizing): then every object counts by where it stands, not by how tall it is, and a
-    few tall ones cannot outweigh the many that agree. ``values`` and ``mask`` may be stacks
-    ``(..., rows, cols)``; each image is prepared on its own, as if alone.
+    few tall ones cannot outweigh the many that agree. ``within``: the cells the support may
+    cover (the filling does not reach past them), as if the grid ended there. ``values`` and
+    ``mask`` may be stacks ``(..., rows, cols)``; each image is prepared on its own, as if alone.
     """
     mask = np.asarray(mask, bool) & np.isfinite(values)
     flat = detrend_plane(values, mask)
     filled, support = fill_normalized(flat, mask, sigma_cells=fill_sigma_cells)
+    if within is not None:
+        support &= np.asarray(within, bool)
+        filled = np.where(support, filled, 0.0)
     if bandpass_sigma_cells > 0:
         low, _ = fill_normalized(filled, support, sigma_cells=bandpass_sigma_cells,
                                  min_support=0.0)

@@ -26,7 +26,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..errors import InputError
 from ..grid import Grid, GridSpec, rasterize
 from ..parallel import map_threads
 from ..reference import Reference
@@ -38,6 +37,7 @@ from .correlation import (
     Mode,
     masked_ncc,
     match_score,
+    overlap_trim,
     shift_of_index,
     subpixel_peak,
     surface_shape,
@@ -51,6 +51,8 @@ SWEEP_MIN_CELLS = 1000  # the block's cells at the sweep's level 2, else the swe
 KEEP = 6  # distinct candidates refined: the best correlations (and on small blocks as many of
 # the poses that best explain the heights, :func:`choose`)
 MIN_SUPPORT_CELLS = 50  # correlations over fewer cells are high by chance too often
+MAX_TIE_CELLS = 4_000_000  # a tie-point canvas larger than this is not tried
+CANVAS_MARGIN_CELLS = 1  # room around a tie-point grid (it ends at its points' bounds)
 WINDOW_CELLS = 8  # local refinement: shifts within this many cells of the candidate's
 STACK_CELLS = 200_000  # correlation cells of a stack (1.6 MB an array: measured fastest, in cache)
 RIVAL_KAPPA_DEG, RIVAL_SCALE, RIVAL_SHIFT_TIE_CELLS = 20.0, 1.25, 6.0  # a different answer
@@ -181,73 +183,99 @@ class Scorer:
             return out
         grid, mref, bandpass = self.reference(sigma)
         c = grid.spec.cell_size
-        placed: dict[int, tuple[np.ndarray, GridSpec]] = {}
-        for i, kappa in enumerate(kappas):
-            ck, sk = math.cos(kappa), math.sin(kappa)
-            xy = sigma * (self.xy @ np.array([[ck, sk], [-sk, ck]]))
-            lo, hi = xy.min(axis=0), xy.max(axis=0)
-            try:
-                spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], c, max_cells=4_000_000)
-            except InputError:
-                continue
-            if spec.size >= MIN_SUPPORT_CELLS:
-                placed[i] = (xy, spec)
+        placed = self._placed(kappas, sigma, c, bandpass)
         if not placed:
             return out
         # one stack of a common shape; each grid keeps its own corner, padded below and right
-        shape = (max(sp.shape[0] for _, sp in placed.values()),
-                 max(sp.shape[1] for _, sp in placed.values()))
+        shape = (max(sp.shape[0] for _, sp, _ in placed), max(sp.shape[1] for _, sp, _ in placed))
         span = mref.shape if near is None else (shape[0] + 2 * WINDOW_CELLS,
                                                 shape[1] + 2 * WINDOW_CELLS)
         per_chunk = max(1, STACK_CELLS // int(np.prod(surface_shape(span, shape))))
-        items = list(placed.items())
-        # the tie grids are prepared as one stack; correlated a chunk at a time, in cache
-        mov = self._prepared(items, shape, bandpass, c)
+        items = [(i, spec) for i, spec, _ in placed]
+        mov = _stacked([crop for _, _, crop in placed], shape)
+        # shifts with too little overlap to score are not computed (one trim for the stack,
+        # so the reference's spectra serve all of its chunks)
+        trim = overlap_trim(mov.support, MIN_OVERLAP)
         for lo_i in range(0, len(items), per_chunk):
             chunk = items[lo_i : lo_i + per_chunk]
             if near is None:
                 target, window, mode = mref, grid.spec, "full"
             else:
-                target, window = _window(mref, grid.spec, [sp for _, (_, sp) in chunk], shape,
-                                         near)
+                target, window = _window(mref, grid.spec, [sp for _, sp in chunk], shape, near)
                 mode = "valid"
             part = slice(lo_i, lo_i + len(chunk))
-            found = self._scores(mov.image[part], mov.support[part], target, mode)
-            for (i, (_, spec)), one in zip(chunk, found):
+            found = self._scores(mov.image[part], mov.support[part], target, mode, trim)
+            for (i, spec), one in zip(chunk, found):
                 if one is not None:
                     out[i] = Surface(*one, replace(spec, shape=shape), window, mode)
         return out
 
-    def _prepared(self, items, shape, bandpass, c) -> Prepared:
-        """The tie-point grids of ``items`` (placed points and their specs), padded to
-        ``shape``, prepared as one stack (each image as if alone)."""
-        rows = shape[0]
-        # image j of the stack occupies rows j*rows .. (j+1)*rows - 1 of one tall grid
-        xs = np.concatenate([xy[:, 0] - sp.x0 for _, (xy, sp) in items])
-        ys = np.concatenate([xy[:, 1] - sp.y0 - j * rows * c
-                             for j, (_, (xy, sp)) in enumerate(items)])
-        zs = np.tile(self.z, len(items))
-        stat = self.channel.tie_stat
-        tall = rasterize(np.column_stack([xs, ys, zs]),
-                         GridSpec(0.0, 0.0, c, (len(items) * rows, shape[1])), stats=(stat,))
-        stack = (len(items), *shape)
-        return prepare(tall[stat].reshape(stack), tall.mask.reshape(stack),
-                       bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
+    def _placed(self, kappas: Sequence[float], sigma: float, c: float,
+                bandpass: float) -> list[tuple[int, GridSpec, Prepared]]:
+        """The prepared tie-point grid of each hypothesis ``(kappa, sigma)`` (cell ``c``), as
+        ``(index in kappas, its spec, image and support)``, cropped to its support. A grid
+        ends at its points' bounding box, as if gridded over their bounds alone.
 
-    def _scores(self, image, support, mref, mode):
+        Headings a quarter turn apart share one grid: the cells lie on the lattice of ``c``
+        about the block's origin, which a quarter turn maps onto itself, and the preparation
+        (detrending, filling, band-pass, opening, clipping) commutes with it. So each heading
+        modulo 90 deg is gridded and prepared once, on a square canvas about the origin that
+        holds all four turns, and the others are its rotations (:func:`numpy.rot90`): a sweep's
+        48 headings cost 12 preparations. Equal, to round-off, to gridding and preparing each
+        heading alone (tested).
+        """
+        quarter = math.pi / 2
+        groups: dict[float, list[tuple[int, int]]] = {}
+        for i, kappa in enumerate(kappas):
+            turns, base = divmod(kappa, quarter)
+            if quarter - base < 1e-9:  # a whole number of turns, up to round-off
+                turns, base = turns + 1, 0.0
+            groups.setdefault(round(base, 12), []).append((i, int(turns) % 4))
+        bases = list(groups)
+        placed = [sigma * (self.xy @ _rotation(kappa)) for kappa in bases]
+        # half a side of the common canvas, in cells: the farthest point, and a cell of room
+        reach = max(float(np.abs(xy).max()) for xy in placed) / c
+        half = math.ceil(reach) + CANVAS_MARGIN_CELLS
+        if (2 * half) ** 2 > MAX_TIE_CELLS:
+            return []
+        side = 2 * half
+        # canvas j occupies rows j*side .. (j+1)*side - 1 of one tall grid
+        xs = np.concatenate([xy[:, 0] for xy in placed]) + half * c
+        ys = np.concatenate([xy[:, 1] - j * side * c for j, xy in enumerate(placed)])
+        stat = self.channel.tie_stat
+        tall = rasterize(np.column_stack([xs, ys, np.tile(self.z, len(bases))]),
+                         GridSpec(0.0, half * c, c, (len(bases) * side, side)), stats=(stat,))
+        shape = (len(bases), side, side)
+        # each grid ends at its points' bounding box, which a quarter turn maps onto the turned
+        # grid's: the filling does not stretch a block past its points (which would shrink the
+        # share of it that overlaps the lidar: blocks a third on it fell under the minimum)
+        mask = tall.mask.reshape(shape)
+        canvas = prepare(tall[stat].reshape(shape), mask, bandpass_sigma_cells=bandpass,
+                         clip_nmad=self.channel.clip_nmad, within=_bounding_boxes(mask))
+        out = []
+        for j, base in enumerate(bases):
+            for i, turns in groups[base]:
+                support = np.rot90(canvas.support[j], turns)
+                rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(
+                    support.any(axis=0))
+                if len(rows) == 0 or support.sum() < MIN_SUPPORT_CELLS:
+                    continue
+                r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+                spec = GridSpec((c0 - half) * c, (half - r0) * c, c, (r1 - r0, c1 - c0))
+                image = np.rot90(canvas.image[j], turns)[r0:r1, c0:c1]
+                out.append((i, spec, Prepared(image, support[r0:r1, c0:c1])))
+        return sorted(out, key=lambda item: item[0])
+
+    def _scores(self, image, support, mref, mode, trim=(0, 0)):
         """Score, NCC and overlap surfaces of each prepared tie grid of a stack (``None`` for
         one with too little support)."""
-        n_support = support.sum(axis=(-2, -1))
-        ncc, n = masked_ncc(mref, None, image, support, mode=mode, single=True)
+        n_support = support.sum(axis=(-2, -1), keepdims=True)
+        ncc, n = masked_ncc(mref, None, image, support, mode=mode, single=True, trim=trim)
+        overlap = n / np.maximum(n_support, 1).astype(n.dtype)
+        valid = (overlap >= MIN_OVERLAP) & (n >= MIN_SUPPORT_CELLS)
+        score = np.where(valid, match_score(ncc, overlap), -np.inf).astype(ncc.dtype)
         for j in range(len(image)):
-            if n_support[j] < MIN_SUPPORT_CELLS:
-                yield None
-                continue
-            overlap = n[j] / float(n_support[j])
-            valid = (overlap >= MIN_OVERLAP) & (n[j] >= MIN_SUPPORT_CELLS)
-            score = np.full(ncc[j].shape, -np.inf, dtype=ncc.dtype)
-            score[valid] = match_score(ncc[j][valid], overlap[valid])
-            yield score, ncc[j], overlap
+            yield None if n_support[j] < MIN_SUPPORT_CELLS else (score[j], ncc[j], overlap[j])
 
     def score(self, kappa: float, sigma: float) -> Hypothesis | None:
         return self.score_many([kappa], sigma)[0]
@@ -266,6 +294,33 @@ class Scorer:
         tx, ty = found.translation(subpixel_peak(found.score, best) if self.level == 1 else best)
         return Hypothesis(kappa, sigma, tx, ty, float(found.score[best]), float(found.ncc[best]),
                           float(found.overlap[best]), self.level)
+
+
+def _rotation(kappa: float) -> np.ndarray:
+    """Row vectors ``p`` -> ``p @ _rotation(kappa)``: ``p`` turned by ``kappa`` anticlockwise."""
+    ck, sk = math.cos(kappa), math.sin(kappa)
+    return np.array([[ck, sk], [-sk, ck]])
+
+
+def _bounding_boxes(mask: np.ndarray) -> np.ndarray:
+    """Each image's bounding box of ``mask`` (a stack ``(k, rows, cols)``), as a mask."""
+    def between(lines: np.ndarray) -> np.ndarray:  # from the first true line to the last
+        after_first = np.logical_or.accumulate(lines, axis=1)
+        before_last = np.logical_or.accumulate(lines[:, ::-1], axis=1)[:, ::-1]
+        return after_first & before_last
+
+    return between(mask.any(axis=2))[:, :, None] & between(mask.any(axis=1))[:, None, :]
+
+
+def _stacked(crops: list[Prepared], shape: tuple[int, int]) -> Prepared:
+    """Prepared grids padded below and right to one ``shape``, as one stack."""
+    image = np.zeros((len(crops), *shape))
+    support = np.zeros((len(crops), *shape), bool)
+    for k, crop in enumerate(crops):
+        rows, cols = crop.image.shape
+        image[k, :rows, :cols] = crop.image
+        support[k, :rows, :cols] = crop.support
+    return Prepared(image, support)
 
 
 def _window(mref: MaskedReference, spec: GridSpec, specs: list[GridSpec],
