@@ -31,7 +31,7 @@ from ..parallel import map_threads
 from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
-from ..transform import Transform
+from ..transform import Transform, rotation_matrix
 from .correlation import (
     MaskedReference,
     Mode,
@@ -232,7 +232,9 @@ class Scorer:
                 turns, base = turns + 1, 0.0
             groups.setdefault(round(base, 12), []).append((i, int(turns) % 4))
         bases = list(groups)
-        placed = [sigma * (self.xy @ _rotation(kappa)) for kappa in bases]
+        # row vectors turned anticlockwise by each base heading
+        placed = [sigma * (self.xy @ rotation_matrix(0.0, 0.0, kappa)[:2, :2].T)
+                  for kappa in bases]
         # half a side of the common canvas, in cells: the farthest point, and a cell of room
         reach = max(float(np.abs(xy).max()) for xy in placed) / c
         half = math.ceil(reach) + CANVAS_MARGIN_CELLS
@@ -254,12 +256,12 @@ class Scorer:
                          clip_nmad=self.channel.clip_nmad, within=_bounding_boxes(mask))
         out = []
         for j, base in enumerate(bases):
+            if canvas.support[j].sum() < MIN_SUPPORT_CELLS:  # the same for all four turns
+                continue
             for i, turns in groups[base]:
                 support = np.rot90(canvas.support[j], turns)
                 rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(
                     support.any(axis=0))
-                if len(rows) == 0 or support.sum() < MIN_SUPPORT_CELLS:
-                    continue
                 r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
                 spec = GridSpec((c0 - half) * c, (half - r0) * c, c, (r1 - r0, c1 - c0))
                 image = np.rot90(canvas.image[j], turns)[r0:r1, c0:c1]
@@ -294,12 +296,6 @@ class Scorer:
         tx, ty = found.translation(subpixel_peak(found.score, best) if self.level == 1 else best)
         return Hypothesis(kappa, sigma, tx, ty, float(found.score[best]), float(found.ncc[best]),
                           float(found.overlap[best]), self.level)
-
-
-def _rotation(kappa: float) -> np.ndarray:
-    """Row vectors ``p`` -> ``p @ _rotation(kappa)``: ``p`` turned by ``kappa`` anticlockwise."""
-    ck, sk = math.cos(kappa), math.sin(kappa)
-    return np.array([[ck, sk], [-sk, ck]])
 
 
 def _bounding_boxes(mask: np.ndarray) -> np.ndarray:
