@@ -85,6 +85,51 @@ def test_a_trimmed_surface_is_the_full_one_at_every_shift_with_enough_overlap(tr
         assert max(trim) > 0  # it does trim
 
 
+
+@pytest.mark.parametrize("trial", range(10))
+def test_a_reference_with_few_holes_gives_the_same_surfaces_by_its_frame(trial):
+    """A reference with data in a rectangle but for a few holes (its corners, say) sums the mask's
+    correlations over that frame instead of transforming it: the same counts and NCC as the
+    slow reference, full and valid, trimmed or not, for each image of a stack."""
+    from tiereg.coarse import correlation
+
+    rng = np.random.default_rng(100 + trial)
+    hr, wr = rng.integers(12, 30, size=2)
+    hm, wm = rng.integers(3, 11, size=2)
+    fr = rng.normal(size=(hr, wr))
+    mr = np.zeros((hr, wr), bool)
+    r0, c0 = rng.integers(0, 4, size=2)
+    mr[r0 : hr - rng.integers(0, 4), c0 : wr - rng.integers(0, 4)] = True
+    frame = np.argwhere(mr)
+    for q in frame[rng.choice(len(frame), size=rng.integers(0, 4), replace=False)]:
+        mr[tuple(q)] = False  # holes, at the frame's edge too
+    mr[r0, c0] = False  # a corner
+    fm, mm = rng.normal(size=(2, hm, wm)), rng.random((2, hm, wm)) > 0.3
+    ref = correlation.MaskedReference(fr, mr)
+    assert ref.sums_by_frame((hm, wm), (hr + hm, wr + wm))
+    trim = overlap_trim(mm, 0.3)
+    ncc, n = masked_ncc(ref, None, fm, mm)
+    ncc_t, n_t = masked_ncc(ref, None, fm, mm, trim=trim)
+    ncc_v, n_v = masked_ncc(ref, None, fm, mm, mode="valid")
+    rows, cols = ncc.shape[-2:]
+    for k in range(2):
+        slow, count = slow_masked_ncc(fr, mr, fm[k], mm[k])
+        assert np.array_equal(n[k], count) and np.allclose(ncc[k], slow, atol=1e-9)
+        kept = (slice(trim[0], rows - trim[0]), slice(trim[1], cols - trim[1]))
+        assert np.array_equal(n_t[k][kept], count[kept])
+        assert np.allclose(ncc_t[k][kept], slow[kept], atol=1e-9)
+        inside = (slice(hm - 1, hr), slice(wm - 1, wr))
+        assert np.array_equal(n_v[k], count[inside])
+        assert np.allclose(ncc_v[k], slow[inside], atol=1e-9)
+
+
+def test_a_reference_with_many_holes_is_transformed(rng):
+    mr = rng.random((40, 40)) > 0.2
+    ref = __import__("tiereg.coarse.correlation", fromlist=["x"]).MaskedReference(
+        rng.normal(size=(40, 40)), mr)
+    assert len(ref.holes) > 100
+    assert not ref.sums_by_frame((20, 20), (64, 64))
+
 def test_masked_ncc_of_a_stack_is_each_image_alone(rng):
     fr, mr = rng.normal(size=(20, 18)), rng.random((20, 18)) > 0.2
     fm, mm = rng.normal(size=(3, 7, 9)), rng.random((3, 7, 9)) > 0.5

@@ -122,14 +122,29 @@ class MaskedReference:
         self.mask = np.asarray(mask, dtype=np.float64)
         self.image = np.where(self.mask > 0, image, 0.0)
         self.shape = self.image.shape
-        self._spectra: dict[tuple[tuple[int, int], tuple[int, int]], tuple] = {}
+        self._spectra: dict[tuple, np.ndarray] = {}
+        # the mask as a rectangle of data with holes in it (:func:`_frame_sums`)
+        rows, cols = np.flatnonzero(self.mask.any(axis=1)), np.flatnonzero(self.mask.any(axis=0))
+        if len(rows):
+            self.frame = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+            r0, r1, c0, c1 = self.frame
+            self.holes = np.argwhere(self.mask[r0:r1, c0:c1] <= 0) + (r0, c0)
+        else:
+            self.frame, self.holes = (0, 0, 0, 0), np.zeros((0, 2), int)
 
-    def spectra(self, corr: _Correlator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        key = (corr.mov_shape, corr.fft_shape, corr.dtype)
+    def spectrum(self, corr: _Correlator, which: str) -> np.ndarray:
+        """The spectrum of the ``"image"``, its ``"square"`` or the ``"mask"``."""
+        key = (which, corr.mov_shape, corr.fft_shape, corr.dtype)
         if key not in self._spectra:
-            self._spectra[key] = (corr.spectrum(self.image), corr.spectrum(self.mask),
-                                  corr.spectrum(self.image * self.image))
+            data = {"image": self.image, "mask": self.mask}.get(which)
+            self._spectra[key] = corr.spectrum(self.image * self.image if data is None else data)
         return self._spectra[key]
+
+    def sums_by_frame(self, mov_shape: tuple[int, int], fft_shape: tuple[int, int]) -> bool:
+        """Whether the mask's correlations are cheaper as sums over its frame, less its holes
+        (:func:`_frame_sums`), than as transforms: when correcting for the holes touches fewer
+        cells than a surface holds (a reference with data everywhere but a few corners)."""
+        return len(self.holes) * mov_shape[0] * mov_shape[1] <= fft_shape[0] * fft_shape[1]
 
 
 def masked_ncc(
@@ -163,6 +178,11 @@ def masked_ncc(
     the shifts within that many of either end of an axis are not computed (``ncc = n = 0``
     there), which shortens the transforms by as much (:func:`overlap_trim` gives the trim that
     leaves out only shifts with too little overlap to count).
+
+    Three of the six sums correlate the reference's mask (``n``, ``S_m`` and the moving image's
+    sum of squares). A reference with data everywhere in a rectangle but a few holes (a lidar
+    grid, whose opening takes off its corners) gives them as sums over that rectangle less the
+    holes, without transforms (:func:`_frame_sums`): 9 transforms a moving image become 5.
     """
     ref = reference if isinstance(reference, MaskedReference) else MaskedReference(
         reference, reference_mask)
@@ -170,15 +190,19 @@ def masked_ncc(
     fm = np.where(mm > 0, moving, 0.0)
     dtype = np.float32 if single else np.float64
     corr = _Correlator(ref.shape, fm.shape[-2:], mode=mode, dtype=dtype, trim=trim)
-    s_fr, s_mr, s_fr2 = ref.spectra(corr)
-    # conjugated once: each takes part in several correlations
-    c_fm, c_mm, c_fm2 = (np.conj(sp, out=sp) for sp in map(corr.spectrum, (fm, mm, fm * fm)))
-    n = np.rint(corr.circular(s_mr, c_mm))
+    s_fr, s_fr2 = ref.spectrum(corr, "image"), ref.spectrum(corr, "square")
+    c_fm, c_mm = (np.conj(sp, out=sp) for sp in map(corr.spectrum, (fm, mm)))
     sum_r = corr.circular(s_fr, c_mm)
-    sum_m = corr.circular(s_mr, c_fm)
     sum_rm = corr.circular(s_fr, c_fm)
     sum_rr = corr.circular(s_fr2, c_mm)
-    sum_mm = corr.circular(s_mr, c_fm2)
+    # the sums over the moving image's cells that land on reference data
+    if ref.sums_by_frame(corr.mov_shape, corr.fft_shape):
+        n, sum_m, sum_mm = _frame_sums(corr, ref, (mm, fm, fm * fm))
+    else:
+        s_mr = ref.spectrum(corr, "mask")
+        n = np.rint(corr.circular(s_mr, c_mm))
+        sum_m = corr.circular(s_mr, c_fm)
+        sum_mm = corr.circular(s_mr, np.conj(corr.spectrum(fm * fm)))
     # a variance within the round-off of its sums is no variance (a flat patch)
     tol = 1e3 * np.finfo(dtype).eps
     floor_rr = tol * np.abs(sum_rr).max(axis=(-2, -1), keepdims=True)
@@ -194,6 +218,54 @@ def masked_ncc(
     denom = np.sqrt(np.multiply(var_r, var_m, out=var_r), out=var_r, where=varied)
     ncc = np.divide(num, denom, out=np.zeros_like(num), where=varied)
     return corr.to_full(np.clip(ncc, -1.0, 1.0, out=ncc)), corr.to_full(n)
+
+
+def _frame_sums(corr: _Correlator, ref: MaskedReference,
+                images: tuple[np.ndarray, ...]) -> list[np.ndarray]:
+    """``sum_p m_r(p + u) b(p)`` for each moving image ``b``, at every index of the transform's
+    period (as :meth:`_Correlator.circular` lays them out), without transforms: the sum of ``b``
+    over the cells that land in the mask's frame (a box, by summed-area tables: Crow 1984),
+    less its cells that land on the holes in it."""
+    (hm, wm), (p0, p1) = corr.mov_shape, corr.fft_shape
+    (a0, b0, a1, b1) = ref.frame
+    # the shift each index of the period stands for: u, or u + period for a negative one
+    u0 = np.arange(p0) - np.where(np.arange(p0) >= p0 - (hm - 1), p0, 0)
+    u1 = np.arange(p1) - np.where(np.arange(p1) >= p1 - (wm - 1), p1, 0)
+    # the moving rows (columns) r0 <= r < r1 that land in the frame at each shift
+    r0 = np.clip(a0 - u0, 0, hm)
+    r1 = np.maximum(np.clip(b0 - u0, 0, hm), r0)
+    c0 = np.clip(a1 - u1, 0, wm)
+    c1 = np.maximum(np.clip(b1 - u1, 0, wm), c0)
+    starts = np.flatnonzero(r0)  # the rows whose sums start past the image's first row
+    out = []
+    for b in images:
+        table = np.zeros((*b.shape[:-2], wm + 1, hm + 1))  # transposed: columns gather as rows
+        np.cumsum(np.cumsum(b, axis=-1), axis=-2, out=table[..., 1:, 1:].swapaxes(-1, -2))
+        by_cols = np.ascontiguousarray((table[..., c1, :] - table[..., c0, :]).swapaxes(-1, -2),
+                                       dtype=corr.dtype)
+        # less the rows above r0 where there are any (the table's row 0 is zero)
+        sums = by_cols[..., r1, :]
+        sums[..., starts, :] -= by_cols[..., r0[starts], :]
+        # a hole at q is met by moving cell p at the shift q - p: the image, turned a half turn,
+        # comes off the block of indices that ends at q (wrapping round the period)
+        turned = np.ascontiguousarray(b[..., ::-1, ::-1], dtype=corr.dtype)
+        for qr, qc in ref.holes:
+            for rows, src_rows in _wrapped(qr - (hm - 1), hm, p0):
+                for cols, src_cols in _wrapped(qc - (wm - 1), wm, p1):
+                    sums[..., rows, cols] -= turned[..., src_rows, src_cols]
+        out.append(sums)
+    return out
+
+
+def _wrapped(start: int, length: int, period: int) -> list[tuple[slice, slice]]:
+    """The indices ``start .. start + length - 1`` modulo ``period`` as at most two slices
+    ``(target, source)``."""
+    start %= period
+    first = min(length, period - start)
+    parts = [(slice(start, start + first), slice(0, first))]
+    if first < length:
+        parts.append((slice(0, length - first), slice(first, length)))
+    return parts
 
 
 def overlap_trim(support: np.ndarray, min_overlap: float) -> tuple[int, int]:
