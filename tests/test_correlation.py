@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from tiereg.coarse.correlation import (
+    MaskedReference,
     cross_power_correlation,
     local_maxima,
     masked_ncc,
@@ -91,8 +92,6 @@ def test_a_reference_with_few_holes_gives_the_same_surfaces_by_its_frame(trial):
     """A reference with data in a rectangle but for a few holes (its corners, say) sums the mask's
     correlations over that frame instead of transforming it: the same counts and NCC as the
     slow reference, full and valid, trimmed or not, for each image of a stack."""
-    from tiereg.coarse import correlation
-
     rng = np.random.default_rng(100 + trial)
     hr, wr = rng.integers(12, 30, size=2)
     hm, wm = rng.integers(3, 11, size=2)
@@ -105,7 +104,7 @@ def test_a_reference_with_few_holes_gives_the_same_surfaces_by_its_frame(trial):
         mr[tuple(q)] = False  # holes, at the frame's edge too
     mr[r0, c0] = False  # a corner
     fm, mm = rng.normal(size=(2, hm, wm)), rng.random((2, hm, wm)) > 0.3
-    ref = correlation.MaskedReference(fr, mr)
+    ref = MaskedReference(fr, mr)
     assert ref.sums_by_frame((hm, wm), (hr + hm, wr + wm))
     trim = overlap_trim(mm, 0.3)
     ncc, n = masked_ncc(ref, None, fm, mm)
@@ -124,9 +123,7 @@ def test_a_reference_with_few_holes_gives_the_same_surfaces_by_its_frame(trial):
 
 
 def test_a_reference_with_many_holes_is_transformed(rng):
-    mr = rng.random((40, 40)) > 0.2
-    ref = __import__("tiereg.coarse.correlation", fromlist=["x"]).MaskedReference(
-        rng.normal(size=(40, 40)), mr)
+    ref = MaskedReference(rng.normal(size=(40, 40)), rng.random((40, 40)) > 0.2)
     assert len(ref.holes) > 100
     assert not ref.sums_by_frame((20, 20), (64, 64))
 

@@ -136,8 +136,9 @@ class MaskedReference:
         """The spectrum of the ``"image"``, its ``"square"`` or the ``"mask"``."""
         key = (which, corr.mov_shape, corr.fft_shape, corr.dtype)
         if key not in self._spectra:
-            data = {"image": self.image, "mask": self.mask}.get(which)
-            self._spectra[key] = corr.spectrum(self.image * self.image if data is None else data)
+            data = self.image * self.image if which == "square" else {
+                "image": self.image, "mask": self.mask}[which]
+            self._spectra[key] = corr.spectrum(data)
         return self._spectra[key]
 
     def sums_by_frame(self, mov_shape: tuple[int, int], fft_shape: tuple[int, int]) -> bool:
