@@ -126,3 +126,12 @@ def test_bad_cell_size():
         GridSpec.from_bounds(0, 0, 10, 10, 0.0)
     with pytest.raises(InputError, match="larger --cell-size"):
         GridSpec.from_bounds(0, 0, 1e6, 1e6, 0.01)
+
+
+def test_mask_bounds_are_the_box_of_the_true_cells_ends_exclusive():
+    from tiereg.grid import mask_bounds
+
+    mask = np.zeros((6, 8), bool)
+    mask[2, 3] = mask[4, 6] = True
+    assert mask_bounds(mask) == (2, 5, 3, 7)
+    assert mask_bounds(np.zeros((3, 3), bool)) is None

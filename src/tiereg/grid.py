@@ -319,6 +319,14 @@ def cell_size_from_density(xy: np.ndarray, *, points_per_cell: float = 0.64) -> 
     return nice_size(math.sqrt(points_per_cell * area / n))
 
 
+def mask_bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """``(row0, row1, col0, col1)``, ends exclusive: the bounding box of a 2-D mask's true cells;
+    ``None`` where there are none."""
+    rows, cols = np.flatnonzero(np.any(mask, axis=1)), np.flatnonzero(np.any(mask, axis=0))
+    if len(rows) == 0:
+        return None
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
 def fill_normalized(
     values: np.ndarray,
     mask: np.ndarray,

@@ -17,6 +17,8 @@ from typing import Literal
 import numpy as np
 from scipy import fft, ndimage
 
+from ..grid import mask_bounds
+
 _EPS = 100 * np.finfo(np.float64).eps
 
 
@@ -124,13 +126,9 @@ class MaskedReference:
         self.shape = self.image.shape
         self._spectra: dict[tuple, np.ndarray] = {}
         # the mask as a rectangle of data with holes in it (:func:`_frame_sums`)
-        rows, cols = np.flatnonzero(self.mask.any(axis=1)), np.flatnonzero(self.mask.any(axis=0))
-        if len(rows):
-            self.frame = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
-            r0, r1, c0, c1 = self.frame
-            self.holes = np.argwhere(self.mask[r0:r1, c0:c1] <= 0) + (r0, c0)
-        else:
-            self.frame, self.holes = (0, 0, 0, 0), np.zeros((0, 2), int)
+        self.frame = mask_bounds(self.mask > 0) or (0, 0, 0, 0)
+        r0, r1, c0, c1 = self.frame
+        self.holes = np.argwhere(self.mask[r0:r1, c0:c1] <= 0) + (r0, c0)
 
     def spectrum(self, corr: _Correlator, which: str) -> np.ndarray:
         """The spectrum of the ``"image"``, its ``"square"`` or the ``"mask"``."""

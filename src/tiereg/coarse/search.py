@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..grid import Grid, GridSpec, rasterize
+from ..grid import Grid, GridSpec, mask_bounds, rasterize
 from ..parallel import map_threads
 from ..reference import Reference
 from ..robust import nmad
@@ -260,9 +260,7 @@ class Scorer:
                 continue
             for i, turns in groups[base]:
                 support = np.rot90(canvas.support[j], turns)
-                rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(
-                    support.any(axis=0))
-                r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+                r0, r1, c0, c1 = mask_bounds(support)  # not empty: it has the minimum support
                 spec = GridSpec((c0 - half) * c, (half - r0) * c, c, (r1 - r0, c1 - c0))
                 image = np.rot90(canvas.image[j], turns)[r0:r1, c0:c1]
                 out.append((i, spec, Prepared(image, support[r0:r1, c0:c1])))
