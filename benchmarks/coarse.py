@@ -88,6 +88,7 @@ class Outcome:
     seconds: float
     note: str = ""
     stolen: float = float("nan")  # share of the cores' time the host took during the run
+    loop_ms: float = float("nan")  # the speed line's loop just before the run (--timing)
 
 
 # ------------------------------------------------------------------------------------- scenes
@@ -173,14 +174,15 @@ def timed_tiereg(method: str, scene, ref: Reference, *, retime: bool):
     :data:`RETIMES` runs), keeping the fastest (the answer is the same every time)."""
     runs = []
     for _ in range(RETIMES if retime else 1):
+        loop = loop_ms(number=2) if retime else float("nan")
         before = stolen_seconds()
         T, conf, sec, note = run_tiereg(method, scene, ref)
         runs.append((sec, (stolen_seconds() - before) / ((os.cpu_count() or 1) * sec),
-                     T, conf, note))
+                     loop, T, conf, note))
         if not runs[-1][1] > MAX_STOLEN:  # NaN (not known) counts as not stolen
             break
-    sec, stolen, T, conf, note = min(runs, key=lambda r: r[0])
-    return T, conf, sec, note, stolen, len(runs)
+    sec, stolen, loop, T, conf, note = min(runs, key=lambda r: r[0])
+    return T, conf, sec, note, stolen, loop, len(runs)
 
 
 def _pixel_to_map(spec: GridSpec) -> np.ndarray:
@@ -269,9 +271,10 @@ def run_scene(job) -> tuple[list[Outcome], dict]:
         for method in methods:
             if not (method in FULL_METHODS or case.negative or case.index % SAMPLE_EVERY == 0):
                 continue
-            T, conf, sec, note, stolen, runs = timed_tiereg(method, scene, ref, retime=retime)
+            T, conf, sec, note, stolen, loop, runs = timed_tiereg(method, scene, ref,
+                                                                  retime=retime)
             outcomes.append(replace(_outcome(f"tiereg {method}", case, scene, T, conf, sec,
-                                             note, cell), stolen=stolen))
+                                             note, cell), stolen=stolen, loop_ms=loop))
             timed = meta["scenes"][name]
             timed["retimed"] = timed.get("retimed", 0) + (runs > 1)
         for peer in PEERS_IMAGE if peers else ():
@@ -460,16 +463,23 @@ def plot(outcomes: list[Outcome], path: Path) -> None:
     plt.close(fig)
 
 
+def loop_ms(number: int = 10) -> float:
+    """The speed line's loop (``sum(range(100_000))``), best of five, in milliseconds."""
+    import timeit
+
+    return min(timeit.repeat("sum(range(100_000))", number=number, repeat=5)) / number * 1e3
+
+
 def machine_speed() -> str:
     """Two fixed workloads, best of five, so that timings from different machines compare: the
     interpreter (a loop) and the transforms (an FFT pair) the sweep spends its time in."""
     import timeit
 
-    loop = min(timeit.repeat("sum(range(100_000))", number=10, repeat=5)) / 10
+    loop = loop_ms()
     fft = min(timeit.repeat("irfft2(rfft2(a))", setup="import numpy as np; from scipy.fft import "
                             "rfft2, irfft2; a = np.random.default_rng(0).random((512, 512))",
                             number=10, repeat=5)) / 10
-    return (f"machine speed: `sum(range(100_000))` {loop * 1e3:.2f} ms, a 512 x 512 FFT pair "
+    return (f"machine speed: `sum(range(100_000))` {loop:.2f} ms, a 512 x 512 FFT pair "
             f"{fft * 1e3:.2f} ms (lower is faster)")
 
 
@@ -483,6 +493,7 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
 
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     stolen = np.array([o.stolen for o in outcomes])
+    loops = np.array([o.loop_ms for o in outcomes])
     retimed = sum(v.get("retimed", 0) for v in meta["scenes"].values())
     lines = [
         "# Coarse registration: time per case (`--coarse auto`, as `tiereg overlap` runs it)",
@@ -504,17 +515,19 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
         f"{RETIMES} runs, and its fastest run kept ({retimed} of {len(outcomes)} cases); "
         + (f"stolen during the kept runs: median {np.nanmedian(stolen):.1%}, at most "
            f"{np.nanmax(stolen):.1%} (`stolen` below)" if np.isfinite(stolen).any()
-           else "not known on this system"), "",
+           else "not known on this system"),
+        f"- the speed line's loop just before each case (`loop ms`, best of five): median "
+        f"{np.nanmedian(loops):.2f} ms, {np.nanmin(loops):.2f}-{np.nanmax(loops):.2f} ms", "",
         "| scene | cases | correct | median s | p90 s | max s | 5 s or more |",
         "|---|---:|---:|---:|---:|---:|---:|",
         *(row(sc, [o for o in outcomes if o.case.scene == sc])
           for sc in dict.fromkeys(o.case.scene for o in outcomes)),
         row("all", outcomes), "",
-        "| scene | case | scale | overlap | correct | confident | s | stolen |",
-        "|---|---:|---:|---:|---|---|---:|---:|",
+        "| scene | case | scale | overlap | correct | confident | s | stolen | loop ms |",
+        "|---|---:|---:|---:|---|---|---:|---:|---:|",
         *(f"| {o.case.scene} | {o.case.index % 1000} | {o.case.hidden.scale:g} | "
           f"{o.case.overlap:.2f} | {o.correct} | {o.confident} | {o.seconds:.2f} | "
-          f"{o.stolen:.1%} |" for o in outcomes), "",
+          f"{o.stolen:.1%} | {o.loop_ms:.2f} |" for o in outcomes), "",
     ]
     path.write_text("\n".join(lines))
 
