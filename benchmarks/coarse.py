@@ -170,8 +170,10 @@ def stolen_seconds() -> float:
 
 def timed_tiereg(method: str, scene, ref: Reference, *, retime: bool):
     """:func:`run_tiereg` and the share of the cores' time the host took meanwhile; with
-    ``retime``, run again while that share exceeds :data:`MAX_STOLEN` (at most
-    :data:`RETIMES` runs), keeping the fastest (the answer is the same every time)."""
+    ``retime``, the speed line's loop just before (:func:`loop_ms`), and run again while that
+    share exceeds :data:`MAX_STOLEN` (at most :data:`RETIMES` runs), keeping the fastest (the
+    answer is the same every time). Returns ``(T, confident, seconds, note, stolen, loop_ms,
+    runs)``."""
     runs = []
     for _ in range(RETIMES if retime else 1):
         loop = loop_ms(number=2) if retime else float("nan")
@@ -225,7 +227,8 @@ def run(quick: bool, with_open3d: bool, workers: int,
         methods: tuple[str, ...] = TIEREG_METHODS, *, scenes: tuple[str, ...] | None = None,
         peers: bool = True, retime: bool = False) -> tuple[list[Outcome], dict]:
     """All scenes (or those named), ``workers`` at a time (each scene in its own process).
-    ``retime``: time again the runs the host took time from (:func:`timed_tiereg`)."""
+    ``retime``: probe the machine's speed before each run and time again the runs the host
+    took time from (:func:`timed_tiereg`)."""
     WORK.mkdir(parents=True, exist_ok=True)
     specs = scene_specs(quick)  # also fills LOOKALIKE_KIND, which the workers need passed
     jobs = [(i, name, spec, quick, with_open3d and peers, LOOKALIKE_KIND.get(name, spec.kind),
@@ -548,8 +551,8 @@ def main() -> None:
     args = parser.parse_args()
     t0 = time.perf_counter()
     if args.timing:
-        # a shared machine's speed can drift within a run (here by up to twice within hours):
-        # measured before and after
+        # a shared machine's speed can drift within a run (here by two to three times within an
+        # hour): measured before and after, and before each case
         speed = machine_speed()
         outcomes, meta = run(False, with_open3d=False, workers=1, methods=("overlap",),
                              scenes=KINDS, peers=False, retime=True)
