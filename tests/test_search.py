@@ -60,7 +60,7 @@ def test_tie_points_from_elsewhere_are_not_confident(mountains):
 def test_scores_near_a_position_are_the_full_surfaces_scores_there(mountains):
     """The local refinement's window (valid mode) against the full surface, shift by shift, and
     a stack of headings against each heading alone."""
-    from tiereg.coarse.search import WINDOW_CELLS, Scorer
+    from tiereg.coarse.scoring import WINDOW_CELLS, Scorer
 
     spec, world, ref = mountains
     hidden = HiddenTransform(heading_deg=40.0, scale=1.0, model_origin=(0.0, 0.0, 0.0))
@@ -97,7 +97,7 @@ def test_headings_a_quarter_turn_apart_share_one_prepared_grid(mountains, channe
     and prepared alone) gives the same cells, support and values, for the sweep's headings, a
     negative one and a seed's arbitrary one."""
     from tiereg.coarse.preprocess import prepare
-    from tiereg.coarse.search import HEIGHTS, OBJECTS, Scorer
+    from tiereg.coarse.scoring import HEIGHTS, OBJECTS, Scorer
     from tiereg.grid import GridSpec, rasterize
 
     _, world, ref = mountains
@@ -222,7 +222,8 @@ def farmland():
 def test_what_stands_on_flat_ground_decides_where_the_heights_cannot(farmland):
     import math
 
-    from tiereg.coarse.search import HEIGHTS, OBJECTS, search
+    from tiereg.coarse.scoring import HEIGHTS, OBJECTS
+    from tiereg.coarse.search import search
     from tiereg.grid import cell_size_from_density
     from tiereg.transform import Transform
 
@@ -272,7 +273,7 @@ def _local_truth(scene, ref):
 def _pose(true, *, turn_deg=0.0, rescale=1.0, score=0.0):
     import math
 
-    from tiereg.coarse.search import Hypothesis
+    from tiereg.coarse.scoring import Hypothesis
 
     return Hypothesis(true.kappa + math.radians(turn_deg), true.scale * rescale,
                       true.translation[0], true.translation[1], score, 0.5, 1.0, 1)

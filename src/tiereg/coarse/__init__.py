@@ -3,7 +3,8 @@
 - ``auto`` (the default): ``qafmt``, then the ``search`` sweep seeded with its candidates unless
   its answer is confident and explains the heights (:mod:`~tiereg.coarse.similarity`).
 - ``search``: heading x scale x shift by a coarse-to-fine space-domain sweep scored by masked NCC
-  (:mod:`~tiereg.coarse.search`), refined continuously against the lidar surface.
+  (:mod:`~tiereg.coarse.search`; each hypothesis scored by :mod:`~tiereg.coarse.scoring`),
+  refined continuously against the lidar surface.
 - ``moments``: a quick initialiser, the heading from the spectra's principal axes and a scale
   scan (:mod:`~tiereg.coarse.moments`).
 - ``fmt``, ``afmt``, ``qafmt`` and their ``-classic`` forms: Fourier-Mellin candidates

@@ -33,7 +33,8 @@ from ..grid import GridSpec, rasterize
 from ..reference import Reference
 from .fourier_mellin import _taper
 from .preprocess import Prepared, prepare
-from .search import HeightCheck, Scorer, SearchResult, verify_candidates
+from .scoring import Scorer
+from .search import HeightCheck, SearchResult, verify_candidates
 
 REFERENCE_CELLS = 256  # per side of the reference grid whose spectrum is taken
 KAPPA_OFFSETS_DEG = (-15.0, -7.5, 0.0, 7.5, 15.0)  # the orientations are good to about 10 deg

@@ -9,7 +9,7 @@
    high correlation at the refined pose, enough overlap, and a refinement that converged near
    where the search ended.
 4. When the heights do not decide (flat farmland), the search is run again on what stands on the
-   ground (:data:`~tiereg.coarse.search.OBJECTS`), judged by thresholds of its own
+   ground (:data:`~tiereg.coarse.scoring.OBJECTS`), judged by thresholds of its own
    (:data:`TRUST`).
 """
 
@@ -32,15 +32,10 @@ from .moments import moments_search
 from .preprocess import prepare
 from .refine import SurfaceFit, fit_to_surface, fit_to_surface_many, height_offset
 from .result import Candidate, CoarseResult
+from .scoring import HEIGHTS, MIN_OVERLAP, OBJECTS, Channel, Hypothesis, Scorer
 from .search import (
-    HEIGHTS,
-    MIN_OVERLAP,
-    OBJECTS,
-    Channel,
     HeightCheck,
-    Hypothesis,
     NoOverlap,
-    Scorer,
     SearchResult,
     search,
     small_block,

@@ -77,7 +77,7 @@ WINDOW_CELLS = 15  # the correlation picture: shifts up to this many cells each 
 
 def _correlation_window(result) -> np.ndarray | None:
     """The coarse score surface of the registered tie points around zero shift, or ``None``."""
-    from ..coarse.search import Scorer
+    from ..coarse.scoring import Scorer
 
     if result.coarse is None or result.reference is None or result.residuals is None:
         return None
