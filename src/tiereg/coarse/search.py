@@ -4,9 +4,9 @@ Every hypothesis ``(kappa, sigma)`` is scored at every shift at once by a
 :class:`~tiereg.coarse.scoring.Scorer`. Levels (tie cells per search cell): 2, a full sweep of
 heading and scale; 1, local refinement of the best distinct candidates. Small blocks (fewer than
 :data:`SWEEP_MIN_CELLS` cells at level 2) are swept at level 1 too: over a few hundred cells a
-wrong hypothesis correlates by chance as well as the right one does. The band-pass keeps the
-same width on the ground at every level (six tie cells): coarser sweeps smooth away what tells
-the right hypothesis from a wrong one.
+wrong hypothesis correlates by chance as well as the right one does. Coarser sweeps than level 2
+would smooth away what tells the right hypothesis from a wrong one (the band-pass keeps its
+width on the ground at every level).
 """
 
 from __future__ import annotations
