@@ -86,7 +86,6 @@ def test_a_trimmed_surface_is_the_full_one_at_every_shift_with_enough_overlap(tr
         assert max(trim) > 0  # it does trim
 
 
-
 @pytest.mark.parametrize("trial", range(10))
 def test_a_reference_with_few_holes_gives_the_same_surfaces_by_its_frame(trial):
     """A reference with data in a rectangle but for a few holes (its corners, say) sums the mask's
@@ -126,6 +125,7 @@ def test_a_reference_with_many_holes_is_transformed(rng):
     ref = MaskedReference(rng.normal(size=(40, 40)), rng.random((40, 40)) > 0.2)
     assert len(ref.holes) > 100
     assert not ref.sums_by_frame((20, 20), (64, 64))
+
 
 def test_masked_ncc_of_a_stack_is_each_image_alone(rng):
     fr, mr = rng.normal(size=(20, 18)), rng.random((20, 18)) > 0.2

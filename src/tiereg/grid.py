@@ -327,6 +327,7 @@ def mask_bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
         return None
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
+
 def fill_normalized(
     values: np.ndarray,
     mask: np.ndarray,
