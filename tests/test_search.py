@@ -253,6 +253,8 @@ def test_auto_registers_flat_farmland_by_what_stands_on_it(farmland):
     est, true = result.T_ref_mov.parameters(), scene.T_ref_mov.parameters()
     assert result.confident, result.reasons
     assert result.coarse.details["channel"] == "objects"
+    # the heights could not be confident by their correlation: judging them was spared
+    assert result.coarse.details["other_channel"]["judged"] is False
     assert abs((np.degrees(est.kappa - true.kappa) + 180) % 360 - 180) < 0.5  # degrees
     assert est.scale / true.scale == pytest.approx(1.0, abs=0.005)
     centre = scene.moving.mean(axis=0, keepdims=True)
@@ -393,6 +395,95 @@ def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
     untaken = replace(bad, details={**bad.details, "residual_ratio": 0.01, "refinement": {
         **bad.details["refinement"], "settled": True}})
     assert not _explains_better(untaken, good)
+
+
+def test_the_checks_that_need_no_fit_rule_out_only_what_the_judge_refuses(small_block):
+    """:func:`~tiereg.coarse.similarity.may_be_confident` spares a judgement only where the
+    judge, fit and all, would not be confident: a weak correlation, a small overlap, a close
+    rival that could not be explained; not a close rival that the heights may explain."""
+    from dataclasses import replace
+
+    from tiereg.coarse.scoring import MIN_OVERLAP
+    from tiereg.coarse.search import SearchResult
+    from tiereg.coarse.similarity import TRUST, FitCache, judge, may_be_confident
+
+    scene, ref = small_block
+    moving, true = _local_truth(scene, ref)
+    trust = TRUST["heights"]
+    right = replace(_pose(true, score=2.0), ncc=0.7)
+    rival = _pose(true, turn_deg=90.0, rescale=0.6, score=1.0)  # a rival ratio of 2
+    close = replace(rival, score=right.score / 1.1)  # under the ratio that is sure alone
+    cases = {  # name: (answer, rival, may be confident)
+        "sure": (right, rival, True),
+        "close rival, for the fit to decide": (right, close, True),
+        "weak correlation": (replace(right, ncc=trust.min_ncc - 0.05), rival, False),
+        "small overlap": (replace(right, overlap=MIN_OVERLAP - 0.05), rival, False),
+        "close rival, too weak to explain": (
+            replace(right, ncc=trust.min_ncc_explained - 0.05), close, False),
+    }
+    fits = FitCache.of(ref)  # the same pose throughout: one fit
+    for name, (h, r, possible) in cases.items():
+        found = SearchResult(h, r, h, ((h,),), 2)
+        verdict = judge(moving, found, method="search", tie_cell=150.0, fits=fits)
+        assert may_be_confident(found, trust) is possible, name
+        assert possible or not verdict.confident, name
+        if name == "sure":
+            assert verdict.confident, verdict.reasons
+
+
+def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_in_turn(
+        small_block):
+    """Where the heights' answer cannot be confident, what stands on the ground is judged
+    first; the heights' answer is judged only when the objects' is not confident, or first when
+    the two start their fits at the same pose. The verdicts are those of judging the heights
+    and then the objects on one cache of fits (the order auto had before)."""
+    import math
+    from dataclasses import replace
+
+    from tiereg.coarse.scoring import OBJECTS
+    from tiereg.coarse.search import SearchResult
+    from tiereg.coarse.similarity import FitCache, _judged_by_turns, judge_choice
+
+    scene, ref = small_block
+    moving, true = _local_truth(scene, ref)
+    right = replace(_pose(true, score=2.0), ncc=0.7)
+    wrong = _pose(true, turn_deg=90.0, rescale=0.6, score=1.0)
+    options = {"method": "search", "tie_cell": 150.0, "extra": {}}
+
+    def found(h, rival):
+        return SearchResult(h, rival, h, ((h,),), 2)
+
+    def by_turns(heights, objects):
+        fits = FitCache.of(ref)
+        return (*_judged_by_turns(moving, heights, objects, None, {**options, "fits": fits}),
+                len(fits.fits))
+
+    def in_turn(heights, objects):
+        fits = FitCache.of(ref)
+        return (judge_choice(moving, heights, fits=fits, **options),
+                judge_choice(moving, objects, channel=OBJECTS, fits=fits, **options))
+
+    def same(a, b):
+        return a.confident == b.confident and np.array_equal(a.T_ref_mov.matrix,
+                                                             b.T_ref_mov.matrix)
+
+    elsewhere = found(replace(wrong, ncc=0.3), right)  # a weak correlation: ruled out
+    sure, unsure = found(right, wrong), found(replace(right, ncc=0.1), wrong)
+    # the objects sure: the heights' answer is not judged (one fit, the objects')
+    heights, objects, n_fits = by_turns(elsewhere, sure)
+    assert objects.confident and n_fits == 1
+    assert not heights.confident and heights.details["judged"] is False
+    assert same(objects, in_turn(elsewhere, sure)[1])
+    # the objects unsure: both are judged, with the verdicts of judging in turn
+    heights, objects, n_fits = by_turns(elsewhere, unsure)
+    assert not objects.confident and n_fits == 2 and "judged" not in heights.details
+    assert all(map(same, (heights, objects), in_turn(elsewhere, unsure)))
+    # the two answers start at the same pose: the heights' fit, made first, serves both
+    near = found(replace(right, kappa=right.kappa + math.radians(0.2), ncc=0.3), wrong)
+    heights, objects, n_fits = by_turns(near, sure)
+    assert n_fits == 1 and objects.details["refinement"]["reused"]
+    assert "judged" not in heights.details
+    assert all(map(same, (heights, objects), in_turn(near, sure)))
 
 
 def test_a_small_block_in_feet_is_found(small_block):
