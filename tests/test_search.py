@@ -90,6 +90,31 @@ def test_scores_near_a_position_are_the_full_surfaces_scores_there(mountains):
     assert (local.tx, local.ty, local.score) == pytest.approx((best.tx, best.ty, best.score))
 
 
+def test_scores_do_not_depend_on_which_thread_asks_first(mountains):
+    """Scales whose cells round to one reference grid share its preparation, with the
+    band-pass of the first scale that asks; the order is fixed before threads score side by
+    side (:meth:`~tiereg.coarse.scoring.Scorer.prepare_for`), so they score as one thread
+    does, whichever of them asks first."""
+    from tiereg.coarse.scoring import Scorer
+
+    spec, world, ref = mountains
+    scene = make_scene(spec, world=world)
+    moving = scene.moving - scene.moving.mean(axis=0)
+    kappas = list(np.radians([0.0, 30.0, 75.0]))
+    a, b = 0.7, 0.8  # 14 m and 16 m cells at level 1: both the 15 m grid of 5 m base cells
+
+    def scored(asked, prepared=()):
+        scorer = Scorer(moving, ref, 20.0, 1)
+        scorer.prepare_for(prepared)
+        out = {sigma: scorer.score_many(kappas, sigma) for sigma in asked}
+        assert scorer.reference(a)[0].spec.cell_size == scorer.reference(b)[0].spec.cell_size
+        return [(h.score, h.tx, h.ty) for sigma in (a, b) for h in out[sigma]]
+
+    one_thread = scored((a, b))
+    assert scored((b, a), prepared=(a, b)) == one_thread
+    assert scored((b, a)) != one_thread  # the order matters, hence fixed beforehand
+
+
 @pytest.mark.parametrize("channel", ["heights", "objects"])
 def test_headings_a_quarter_turn_apart_share_one_prepared_grid(mountains, channel):
     """The sweep grids and prepares each heading modulo 90 deg once and turns it: the slow,

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -140,7 +140,12 @@ class Scorer:
         self.ref_extent = max(x1 - x0, y1 - y0)
 
     def reference(self, sigma: float) -> tuple[Grid, MaskedReference, float]:
-        """The prepared reference grid for ``sigma`` and its band-pass width in cells."""
+        """The prepared reference grid for ``sigma`` and its band-pass width in cells.
+
+        The scales whose cells round to one grid (:meth:`~tiereg.reference.Reference.grid`)
+        share it, prepared once, with the band-pass of the first scale that asks. Threads that
+        score side by side would ask in any order: :meth:`prepare_for` fixes the order first.
+        """
         cell = max(self.level * self.tie_cell * sigma, self.ref.base_cell)
         with self._lock:
             grid = self.ref.grid(cell, stats=(self.channel.reference_stat,))
@@ -151,6 +156,13 @@ class Scorer:
                             bandpass_sigma_cells=bandpass, clip_nmad=self.channel.clip_nmad)
                 self._refs[key] = (grid, MaskedReference(p.image, p.support), bandpass)
             return self._refs[key]
+
+    def prepare_for(self, sigmas: Iterable[float]) -> None:
+        """Prepare the reference grids of ``sigmas`` in that order (:meth:`reference`), so that
+        the scores do not depend on which thread asks first."""
+        for sigma in sigmas:
+            if self.level * self.tie_cell * sigma >= self.ref_extent / MAX_REFERENCE_CELLS:
+                self.reference(sigma)
 
     def surface(self, kappa: float, sigma: float) -> Surface | None:
         """The score surface of one hypothesis (:meth:`surfaces`)."""

@@ -205,6 +205,7 @@ def search(
     by_sigma: dict[float, list[float]] = {float(sg): [float(k) for k in kappas] for sg in sigmas}
     for kappa, sigma in seeds or []:
         by_sigma.setdefault(float(sigma), []).append(float(kappa))
+    sweep_scorer.prepare_for(by_sigma)
     scored = map_threads(lambda item: sweep_scorer.score_many(item[1], item[0]),
                          by_sigma.items(), workers=workers)
     sweep = [h for hs in scored for h in hs if h is not None]
@@ -294,6 +295,13 @@ def refine_candidates(
             cur = max(level1, key=lambda c: c.ncc) if level1 else cur
         return cur, n
 
+    reach = []  # the scales each refinement may score, candidate by candidate
+    for h in candidates:
+        sigmas = [h.sigma]
+        for _, ratio in steps:
+            sigmas = [s * ds for s in sigmas for ds in (1 / ratio, 1.0, ratio)]
+            reach += sigmas
+    fine.prepare_for(reach)
     done = map_threads(refine, candidates, workers=workers)
     pairs = sorted(((h, c) for (h, _), c in zip(done, candidates) if h.level == 1),
                    key=lambda hc: -hc[0].score)

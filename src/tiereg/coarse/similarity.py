@@ -205,6 +205,7 @@ def frequency_search(
 
     tried = [c for level in map_threads(level_candidates, range(n_levels), workers=None)
              for c in level]
+    scorer.prepare_for(sigma for _, sigma in tried)
     scored = map_threads(lambda kappa_sigma: scorer.score(*kappa_sigma), tried, workers=None)
     hyps = [h for h in scored if h is not None]
     return verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=6,
