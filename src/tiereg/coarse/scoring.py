@@ -161,8 +161,13 @@ class Scorer:
         """Prepare the reference grids of ``sigmas`` in that order (:meth:`reference`), so that
         the scores do not depend on which thread asks first."""
         for sigma in sigmas:
-            if self.level * self.tie_cell * sigma >= self.ref_extent / MAX_REFERENCE_CELLS:
+            if not self.too_fine(sigma):
                 self.reference(sigma)
+
+    def too_fine(self, sigma: float) -> bool:
+        """Whether ``sigma``'s cell would grid the reference finer than
+        :data:`MAX_REFERENCE_CELLS` a side: such hypotheses are not scored."""
+        return self.level * self.tie_cell * sigma < self.ref_extent / MAX_REFERENCE_CELLS
 
     def surface(self, kappa: float, sigma: float) -> Surface | None:
         """The score surface of one hypothesis (:meth:`surfaces`)."""
@@ -183,7 +188,7 @@ class Scorer:
         overhead of many small array operations.
         """
         out: list[Surface | None] = [None] * len(kappas)
-        if self.level * self.tie_cell * sigma < self.ref_extent / MAX_REFERENCE_CELLS:
+        if self.too_fine(sigma):
             return out
         grid, mref, bandpass = self.reference(sigma)
         c = grid.spec.cell_size
