@@ -30,6 +30,7 @@ WORK = HERE / "work" / "orientation"
 
 sys.path.insert(0, str(HERE))
 
+from coarse import machine_speed  # noqa: E402
 from fine import kind_setup  # noqa: E402
 
 from tiereg import register  # noqa: E402
@@ -74,6 +75,7 @@ def main() -> None:
     args = parser.parse_args()
     WORK.mkdir(parents=True, exist_ok=True)
     rows = []
+    speed = machine_speed()
     t_all = time.perf_counter()
     for index, kind in enumerate(KINDS):
         k = kind_setup(index, kind, scene=SCENE, seed0=60, work=WORK, rng_seed=2028)
@@ -109,10 +111,11 @@ def main() -> None:
             print(f"{kind}-{case} {'cams' if cameras else 'points'}: correct {correct}, "
                   f"confident {result.confident}, rotation {rot:.2f} deg, {seconds:.1f} s",
                   file=sys.stderr)
-    write(rows, time.perf_counter() - t_all)
+    write(rows, time.perf_counter() - t_all, speed=(speed, machine_speed()))
 
 
-def write(rows: list[dict], seconds: float) -> None:
+def write(rows: list[dict], seconds: float, *, speed: tuple[str, str]) -> None:
+    """``speed``: :func:`~coarse.machine_speed` at the start and the end of the run."""
     pos = [r for r in rows if not r["negative"]]
     neg = [r for r in rows if r["negative"]]
     cw = sum(r["confident"] and not r["correct"] for r in rows)
@@ -126,6 +129,8 @@ def write(rows: list[dict], seconds: float) -> None:
     lines = ["# Models in any orientation", "",
              f"- date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}"
              f"; total run time {seconds / 60:.1f} min",
+             f"- {speed[0]}; at the end of the run: "
+             f"{speed[1].removeprefix('machine speed: ')}",
              "- cases: simulated blocks (1 lidar point per m^2, 350 tie points per km^2) as COLMAP "
              "models: hidden similarity (any heading, scale 0.25-4) then a random 3-D rotation "
              "(uniform); even cases with cameras, odd ones points only; one negative case per "
