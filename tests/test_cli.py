@@ -116,6 +116,10 @@ def test_demo(tmp_path, capsys):
     assert code == 0
     assert "truth" in stdout and "recovered" in stdout and "cell of" in stdout
     assert (tmp_path / "RESULT.json").exists() and (tmp_path / "tiepoints.xyz").exists()
+    # -q: errors only; the exit code still tells
+    code, stdout, stderr = run(["demo", "--out", tmp_path / "quiet", "-q"], capsys)
+    assert code == 0 and stdout == "" and stderr == ""
+    assert (tmp_path / "quiet" / "RESULT.json").exists()
 
 
 def test_help_has_examples(capsys):
@@ -149,6 +153,7 @@ def _cases(tmp: Path, good_lidar: Path, good_ties: Path):
     out = tmp / "R.json"
     reg = ["register"]
     return [
+        ("no command", [], "command is needed"),
         ("missing file", reg + [tmp / "nope.xyz", good_lidar, "-o", out], "nope.xyz"),
         ("unknown format", reg + [tmp / "unknown.dat", good_lidar, "-o", out], "unknown.dat"),
         ("truncated laz", reg + [good_ties, tmp / "cut.laz", "-o", out], "cut.laz"),

@@ -112,6 +112,14 @@ def test_register_report_option_and_report_command(tmp_path):
     a = np.array([[float(v) if v else np.nan for v in r.split(",")[:5]] for r in first[1:]])
     b = np.array([[float(v) if v else np.nan for v in r.split(",")[:5]] for r in again[1:]])
     np.testing.assert_allclose(a[:, 4], b[:, 4], atol=2e-4, equal_nan=True)
+    # sloped control points carry the registration's horizontal precision either way (RESULT.json
+    # keeps it), which also enters their height's
+    def sloped_sx(folder):
+        rows = [r.split(",") for r in (tmp_path / folder / "control_points.csv").read_text()
+                .splitlines()[1:]]
+        return {r[4] for r in rows if r[7] == "xyz"}
+
+    assert sloped_sx("rep") and sloped_sx("again") == sloped_sx("rep") != {""}
 
 
 def test_report_command_bad_input_is_one_line(tmp_path, capsys):

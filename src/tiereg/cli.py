@@ -111,7 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="grid cell in reference units (default: from the tie-point density)")
     p.add_argument("--level", choices=("auto", "cameras", "points", "none"), default="auto",
                    help="vertical of a model in any orientation: from a COLMAP/Bundler model's "
-                   "cameras, from the points' dominant plane, or none (default auto)")
+                   "cameras, from the points' dominant plane, or none (default auto); not used "
+                   "with --initial or --coarse none, whose pose already says which way is up")
     p.add_argument("--free-tilt", action="store_true",
                    help="the moving points may lean by a degree or more (a model levelled from "
                    "its own points; --level does this by itself): heights are compared after "
@@ -125,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write the moving points in the reference frame (format by suffix)")
     p.add_argument("--moving-format", metavar="FMT", help="override format detection")
     p.add_argument("--reference-format", metavar="FMT", help="override format detection")
-    p.add_argument("--seed", type=int, default=0, help="random seed (for reproducible sampling)")
+    p.add_argument("--seed", type=int, default=0, help="accepted for scripts that pass one: the "
+                   "registration draws no random numbers, so every run gives the same answer")
 
     p = add("overlap", "Do MOVING and REFERENCE overlap, and where? A quick answer from the "
                        "coarse registration.")
@@ -171,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
                    default="suburban")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--overlap", type=float, default=1.0, help="share of the block inside the "
-                   "lidar footprint (0.3-1)")
+                   "lidar footprint, in (0, 1]; the coarse stage needs 0.3 or more")
     p.add_argument("--heading", type=float, help="hidden heading in degrees (default random)")
     p.add_argument("--scale", type=float, help="hidden scale, model units per metre (default "
                    "random in 0.25-4)")
@@ -387,6 +389,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     outcome = run_demo(args.out, seed=args.seed, progress=_progress_factory(args.quiet))
     r = outcome.result
+    code = EXIT_OK if r.confident else EXIT_NOT_CONFIDENT
+    if args.quiet:
+        return code
     true, est = outcome.T_ref_mov_true.parameters(), r.T_ref_mov.parameters()
     centre_true, centre_est = outcome.block_centre_true, outcome.block_centre_est
     print("tiereg demo: Autzen 2010 lidar (110,000 points, feet) and 1,500 tie points made from "
@@ -402,7 +407,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(_summary(r))
     print(f"wrote {Path(args.out) / 'RESULT.json'}, tiepoints.xyz, truth.json")
     print(_report_line(outcome.report))
-    return EXIT_OK if r.confident else EXIT_NOT_CONFIDENT
+    return code
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -454,8 +459,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
-        parser.print_help()
-        return EXIT_BAD_INPUT
+        parser.error(f"a command is needed: one of {', '.join(COMMANDS)}")
     _setup_logging(args)
     try:
         return COMMANDS[args.command](args)

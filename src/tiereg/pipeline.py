@@ -312,7 +312,9 @@ def register(
         a :class:`~tiereg.PointSet`, or an ``(N, 3)`` float64 array. ``reference`` may also be a
         :class:`~tiereg.reference.Reference` prepared once and used for many registrations.
     coarse
-        ``"auto"`` or ``"pomf"`` (translation search), or ``"none"`` (keep the input position).
+        ``"auto"`` (the default), ``"search"``, ``"moments"``, ``"fmt"``, ``"afmt"``,
+        ``"qafmt"`` (and their ``-classic`` forms), ``"pomf"`` (translation only), or
+        ``"none"`` (keep the input position): :mod:`tiereg.coarse`.
     fine
         ``"auto"`` or ``"lsm"`` (least-squares matching of the points to the lidar surface,
         7 parameters, with precision), ``"planes"`` (matching to planar segments of the lidar

@@ -1,7 +1,8 @@
 """Coarse registration: from no initial guess to within a cell or two.
 
-- ``auto`` (the default): ``qafmt``, then the ``search`` sweep seeded with its candidates unless
-  its answer is confident and explains the heights (:mod:`~tiereg.coarse.similarity`).
+- ``auto`` (the default): on a small block ``qafmt``, then the ``search`` sweep seeded with its
+  candidates unless its answer is confident and explains the heights; on a larger block the
+  sweep alone (:mod:`~tiereg.coarse.similarity`).
 - ``search``: heading x scale x shift by a coarse-to-fine space-domain sweep scored by masked NCC
   (:mod:`~tiereg.coarse.search`; each hypothesis scored by :mod:`~tiereg.coarse.scoring`),
   refined continuously against the lidar surface.

@@ -58,18 +58,22 @@ def write_report(result, out_dir: str | os.PathLike[str]) -> Report:
     if result.residuals is None:
         raise InputError("the result has no per-point residuals; register again with this "
                          "version of tiereg")
+    data = result.to_dict()
     control: tuple[ControlPoint, ...] = ()
     if result.reference is not None and result.confident:
-        prec = result.fine.precision(1.0) if result.fine is not None and not \
-            result.fine.refused else None
-        sxy = None
-        if prec and prec["translation"][0] is not None and prec["translation"][1] is not None:
-            sxy = float(np.hypot(prec["translation"][0], prec["translation"][1]) / np.sqrt(2))
         local = result.residuals.xyz - result.reference.origin
         control = select_control_points(local, result.reference, blunder=result.residuals.blunder,
-                                        sigma_xy=sxy)
-    return _write(result.to_dict(), result.residuals, control, Path(out_dir),
+                                        sigma_xy=_sigma_xy(data["precision"]))
+    return _write(data, result.residuals, control, Path(out_dir),
                   crs_wkt=result.inputs.crs_wkt, correlation=_correlation_window(result))
+
+
+def _sigma_xy(precision: dict[str, Any] | None) -> float | None:
+    """The registration's horizontal precision, one standard deviation per axis (the RMS of x
+    and y at the block centroid), from RESULT.json's ``precision``; ``None`` without one (no
+    fine stage, or a refused one)."""
+    sx, sy = ((precision or {}).get("translation") or [None, None])[:2]
+    return None if sx is None or sy is None else float(np.hypot(sx, sy) / np.sqrt(2))
 
 
 WINDOW_CELLS = 15  # the correlation picture: shifts up to this many cells each way
@@ -100,7 +104,11 @@ def _correlation_window(result) -> np.ndarray | None:
 
 def report_from_result_file(result_json: str | os.PathLike[str],
                             out_dir: str | os.PathLike[str], *, progress=None) -> Report:
-    """The report of an earlier registration, from its RESULT.json and the inputs it names."""
+    """The report of an earlier registration, from its RESULT.json and the inputs it names.
+
+    The same files as :func:`write_report`, but for what RESULT.json does not keep: blunders are
+    those more than ``BLUNDER_NMADS`` robust standard deviations off (not the fine stage's
+    weights), and there is no ``coarse_correlation.png``."""
     from ..fine.lsm import lidar_near
     from ..io import open_points
     from ..pipeline import SURFACE_RADIUS_SPACINGS, height_differences, register
@@ -155,7 +163,8 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     control = ()
     if data.get("confident") and after.reference is not None:
         control = select_control_points(after.residuals.xyz - after.reference.origin,
-                                        after.reference, blunder=residuals.blunder)
+                                        after.reference, blunder=residuals.blunder,
+                                        sigma_xy=_sigma_xy(data.get("precision")))
     return _write(data, residuals, control, Path(out_dir), crs_wkt=after.inputs.crs_wkt)
 
 
