@@ -150,6 +150,11 @@ def _cases(tmp: Path, good_lidar: Path, good_ties: Path):
         ds.write(np.full((5, 5), -9999.0, np.float32), 1)
     (tmp / "nothing").mkdir()
     (tmp / "nothing" / "notes.txt").write_text("no points here")
+    (tmp / "mixed").mkdir()
+    unit = np.column_stack([np.random.default_rng(1).uniform(0, 1, (500, 2)), np.zeros(500)])
+    _las_in(tmp / "mixed" / "a.las", unit * [1000, 1000, 1] + [500000, 5000000, 0], 32632)
+    _las_in(tmp / "mixed" / "b.las", unit * [0.01, 0.01, 1] + [9.0, 45.0, 0], 4326)
+    _las_in(tmp / "lonlat.las", unit * [0.01, 0.01, 1] + [9.0, 45.0, 0], 4326)
     out = tmp / "R.json"
     reg = ["register"]
     return [
@@ -170,10 +175,29 @@ def _cases(tmp: Path, good_lidar: Path, good_ties: Path):
         ("bad cell size", reg + [good_ties, good_lidar, "-o", out, "--cell-size", "-3"],
          "cell"),
         ("bad option", reg + [good_ties, good_lidar, "-o", out, "--coarse", "magic"], "magic"),
+        ("result onto the lidar", reg + [good_ties, good_lidar, "-o", good_lidar], "overwrite"),
+        ("points onto the tie points", reg + [good_ties, good_lidar, "-o", out,
+                                             "--output-points", good_ties], "overwrite"),
+        ("tiles in two CRSs", reg + [good_ties, tmp / "mixed", "-o", out], "one crs"),
+        ("longitude and latitude", reg + [good_ties, tmp / "lonlat.las", "-o", out],
+         "projected crs"),
         ("apply unknown transform", ["apply", tmp / "nope.json", good_ties, tmp / "x.xyz"],
          "nope.json"),
         ("apply onto itself", ["apply", tmp / "m.txt", good_ties, good_ties], "overwrite"),
     ]
+
+
+def _las_in(path: Path, xyz: np.ndarray, epsg: int) -> None:
+    """A small LAS file whose header names the CRS ``epsg``."""
+    import pyproj
+
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales = np.array([1e-7, 1e-7, 0.01]) if epsg == 4326 else np.array([0.01] * 3)
+    header.offsets = np.floor(xyz.min(axis=0))
+    header.add_crs(pyproj.CRS.from_epsg(epsg))
+    data = laspy.LasData(header)
+    data.x, data.y, data.z = xyz.T
+    data.write(str(path))
 
 
 def test_bad_input_one_line_exit_2_no_output(scene_files, tmp_path):

@@ -176,20 +176,21 @@ def test_a_fine_answer_that_moves_the_block_too_far_or_fits_worse_is_refused():
     start_spread = 0.3  # metres: the spread of the distances at the coarse pose
     near = TRUTH.inverse.apply(p)  # about 2.6 m off: the fine stage may move it there
     fit = solve_helmert(near, observe, hold_displacement=5.0)
-    assert _refusal(fit, near, observe, start_spread=1.0, max_move=10.0) == ""
+    assert _refusal(fit, near, observe, start_spread=1.0, max_move=10.0) == ("", False)
     far = p + [0.0, 0.0, 40.0]  # 40 m above: more than the coarse stage's uncertainty
     fit = solve_helmert(far, observe, hold_displacement=5.0)
-    assert "move the block" in _refusal(fit, far, observe, start_spread=1.0, max_move=10.0)
+    why, contradicts = _refusal(fit, far, observe, start_spread=1.0, max_move=10.0)
+    assert "move the block" in why and contradicts  # the two stages disagree
     # an answer that leaves the points farther from the surface than they started
     fit = solve_helmert(near, observe, hold_displacement=5.0)
     worse = fit.__class__(**{**fit.__dict__, "T": Transform.from_parameters(
         kappa=np.radians(3.0))})
-    assert "farther from the lidar surface" in _refusal(worse, p, observe, start_spread,
-                                                        max_move=1e6)
+    why, contradicts = _refusal(worse, p, observe, start_spread, max_move=1e6)
+    assert "farther from the lidar surface" in why and not contradicts
     # a fit stopped at its iteration limit is no answer
     stopped = solve_helmert(near, observe, hold_displacement=5.0, max_iterations=2)
-    assert "did not converge" in _refusal(stopped, near, observe, start_spread=1.0,
-                                          max_move=10.0)
+    why, contradicts = _refusal(stopped, near, observe, start_spread=1.0, max_move=10.0)
+    assert "did not converge" in why and not contradicts
 
 
 def test_lsm_finds_the_canopy_surface_where_the_grid_mean_is_metres_off():

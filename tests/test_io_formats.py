@@ -260,6 +260,7 @@ _DOUBLES = "element vertex 1\nproperty double x\nproperty double y\nproperty dou
         (_LE + "element face 1\nproperty list uchar int v\n" + _DOUBLES + "end_header\n",
          "list properties"),
         (_LE + "element vertex 1\nproperty quad x\nend_header\n", "header line"),
+        (_LE + "element vertex -5\nproperty double x\nend_header\n", "header line"),
         ("ply\nformat binary_middle_endian 1.0\nend_header\n", "unknown PLY format"),
         (_LE + "property double x\nend_header\n", "header line"),
         (_LE + _DOUBLES.replace("vertex", "point") + "end_header\n", "no 'vertex' element"),

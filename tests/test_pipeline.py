@@ -9,9 +9,9 @@ import pytest
 from scenes import make_scene
 
 from tiereg import InputError, PointSet, Transform
-from tiereg.demo import NOISE_Z, run_demo
+from tiereg.demo import NOISE_Z, make_tie_points, run_demo, sample_lidar
 from tiereg.files import grid_to_geotiff
-from tiereg.io import write_points
+from tiereg.io import open_points, write_points
 from tiereg.pipeline import register
 
 SHIFT = Transform.from_translation((-12345.6, 2345.7, -50.0))  # reference -> moving
@@ -121,6 +121,24 @@ def test_coarse_none_keeps_the_input_position():
     result = register(scene.tie_mov, scene.lidar, coarse="none", fine="none")
     assert result.T_ref_mov.isclose(Transform.identity())
     assert result.quality.n_used == len(scene.tie_mov)
+
+
+def test_a_starting_pose_the_fine_stage_cannot_confirm_is_not_confident():
+    """With --coarse none only the fine stage vouches for the given pose: a pose within a cell
+    of the truth is refined and confident; one it would have to move farther than the coarse
+    stage's uncertainty (two cells), or cannot refine at all, is reported as not confident."""
+    tie = make_tie_points(open_points(sample_lidar()).read().xyz)
+    truth = register(tie, sample_lidar())
+    centre = tie.mean(axis=0, keepdims=True)
+    for off_cells, confident, why in ((1.0, True, ""), (2.5, False, "contradicts the starting"),
+                                      (5.0, False, "could not confirm")):
+        start = Transform.from_translation((off_cells * truth.cell_size, 0.0, 0.0))
+        result = register(tie, sample_lidar(), coarse="none", initial=start @ truth.T_ref_mov)
+        assert result.confident is confident, off_cells
+        assert why in " ".join(result.reasons)
+        if confident:  # refined back onto the truth, to a tenth of a cell
+            err = result.T_ref_mov.apply(centre) - truth.T_ref_mov.apply(centre)
+            assert np.hypot(*err[0, :2]) < 0.1 * truth.cell_size
 
 
 @pytest.mark.parametrize("points, fragment", [

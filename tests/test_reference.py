@@ -63,6 +63,32 @@ def test_first_returns_only(tmp_path):
     assert sorted(heights.tolist()) == [20.0, 30.0]
 
 
+@pytest.mark.parametrize("version, point_format", [("1.2", 1), ("1.4", 6)])
+def test_noise_and_withheld_points_are_not_the_surface(tmp_path, version, point_format):
+    """Low points (class 7), high noise (class 18) and withheld points hundreds of metres off
+    the ground would pull whole cells: the grid and the points the fine stage reads leave them
+    out."""
+    header = laspy.LasHeader(version=version, point_format=point_format)
+    header.scales = np.array([0.01, 0.01, 0.01])
+    data = laspy.LasData(header)
+    x, y = np.meshgrid(np.arange(0.5, 10.0), np.arange(0.5, 10.0))
+    ground = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 100.0)])
+    stray = ground[::7] + [0.0, 0.0, 700.0]  # birds and multipath echoes
+    xyz = np.vstack([ground, stray, stray - [0.0, 0.0, 900.0], stray + [0.0, 0.0, 50.0]])
+    data.x, data.y, data.z = xyz.T
+    k = len(stray)
+    data.classification = np.array([2] * len(ground) + [18] * k + [7] * k + [1] * k, np.uint8)
+    data.withheld = np.array([0] * (len(ground) + 2 * k) + [1] * k, bool)
+    data.return_number = np.ones(len(xyz), np.uint8)
+    data.number_of_returns = np.ones(len(xyz), np.uint8)
+    data.write(str(tmp_path / "noisy.las"))
+    ref = prepare_reference(open_points(tmp_path / "noisy.las"), base_cell=1.0)
+    heights = ref.base["mean"][ref.base.mask] + ref.origin[2]
+    assert ref.base.count.sum() == len(ground) and np.all(heights == 100.0)
+    kept = np.vstack(list(ref.local_chunks())) + ref.origin
+    assert len(kept) == len(ground) and np.all(kept[:, 2] == 100.0)
+
+
 def test_a_prepared_reference_serves_many_registrations():
     scene = make_scene(seed=8, T_mov_ref=Transform.from_translation((-3000.0, 700.0, 10.0)),
                        lidar_points=200_000)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -96,6 +97,17 @@ def test_control_points_sit_on_the_true_surface():
     # spread over the block: control points in most of the 12 x 12 cells that have tie points
     assert len({(int(x // 100), int(y // 100)) for x, y in xyz[:, :2]}) >= 10
     assert {p.kind for p in cps} <= {"height", "xyz"}
+
+
+def test_a_registration_that_failed_still_gets_its_report(demo_result, tmp_path):
+    """Tie points that no shift near the answer lays on the lidar (here moved off it by more
+    than the block's width): the report is written, without a correlation picture."""
+    xyz = demo_result.residuals.xyz
+    off = replace(demo_result, residuals=replace(
+        demo_result.residuals, xyz=xyz + [1.2 * np.ptp(xyz[:, 0]), 0.0, 0.0]))
+    write_report(off, tmp_path)
+    assert (tmp_path / "report.html").exists() and (tmp_path / "dz_after.png").exists()
+    assert not (tmp_path / "coarse_correlation.png").exists()
 
 
 def test_register_report_option_and_report_command(tmp_path):

@@ -99,6 +99,8 @@ def test_pdal_and_cloudcompare_strings():
     cc = T.to_cloudcompare()
     assert len(cc.strip().splitlines()) == 4
     assert np.array_equal(Transform.from_text(cc).matrix, T.matrix)
+    commented = f"# exported 2026-12-03\n// the model to the lidar\n{cc}\n# end\n"
+    assert np.array_equal(Transform.from_text(commented).matrix, T.matrix)
 
 
 @pytest.mark.parametrize(

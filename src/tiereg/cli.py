@@ -246,14 +246,19 @@ def _summary(result) -> str:
 
 
 def _cmd_register(args: argparse.Namespace) -> int:
-    from .io import write_points
+    from .io import check_not_input, write_points
     from .io.base import check_writable, write_text_atomic
     from .pipeline import register
 
     out = Path(args.output)
     check_writable(out)  # fail before any work if the result could not be written
+    check_not_input(out, args.moving, args.reference)
     if args.output_points:
         check_writable(args.output_points)
+        check_not_input(args.output_points, args.moving, args.reference)
+        if Path(args.output_points).resolve() == out.resolve():
+            raise InputError(f"--output-points {args.output_points}: is the -o file too; give "
+                             "the points another name")
     if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
         raise InputError(f"--report {args.report}: is a file; give a folder for the report")
     initial = _load_transform(args.initial) if args.initial else None
@@ -337,7 +342,10 @@ def _load_transform(path: str):
     try:
         data = json.loads(text)
     except json.JSONDecodeError:
-        return Transform.from_text(text)
+        try:
+            return Transform.from_text(text)
+        except InputError as exc:
+            raise InputError(f"{p}: {exc}") from None
     if not isinstance(data, dict):
         raise InputError(f"{p}: a transform JSON must be an object with 'T_ref_mov' or 'matrix'")
     try:

@@ -1,4 +1,5 @@
-"""Coordinate reference systems, for labels and units in results (never for computation)."""
+"""Coordinate reference systems, for labels, units and checks of the inputs (never for
+computation)."""
 
 from __future__ import annotations
 
@@ -29,3 +30,16 @@ def crs_units(wkt: str | None) -> str:
     if crs is None or not crs.axis_info:
         return "unknown"
     return crs.axis_info[0].unit_name
+
+
+def is_geographic(wkt: str | None) -> bool:
+    """Whether the CRS is geographic (longitude and latitude in degrees)."""
+    crs = _parse(wkt)
+    return crs is not None and crs.is_geographic
+
+
+def same_crs(a: str | None, b: str | None) -> bool:
+    """Whether two CRS records name the same CRS (both missing counts as the same; one missing
+    or unparsable does not contradict the other)."""
+    ca, cb = _parse(a), _parse(b)
+    return ca is None or cb is None or ca.equals(cb, ignore_axis_order=True)

@@ -13,21 +13,13 @@ import numpy as np
 from .crs import crs_label, crs_units
 from .errors import InputError
 from .grid import GridSpec, fill_normalized, median_sample_for, nice_size, rasterize
-from .io import open_points, write_points
+from .io import check_not_input, open_points, write_points
 from .io.las import LasSource, transform_las
 from .io.raster import RasterSource, write_geotiff
 from .progress import ProgressFactory, no_progress
 from .transform import Transform
 
 PathsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
-
-
-def _check_not_same(src: PathsLike, out: str | os.PathLike[str]) -> None:
-    srcs = [src] if isinstance(src, (str, os.PathLike)) else list(src)
-    for s in srcs:
-        if Path(s).exists() and Path(out).exists() and Path(s).resolve() == Path(out).resolve():
-            raise InputError(f"{out}: the output would overwrite the input; "
-                             "choose another output name")
 
 
 def apply_to_file(
@@ -45,7 +37,7 @@ def apply_to_file(
     output) or written as points (to a point format).
     """
     progress = progress or no_progress
-    _check_not_same(source_path, out_path)
+    check_not_input(out_path, source_path)
     src = open_points(source_path, format=format)
     out = Path(out_path)
     suffix = out.suffix.lower()
@@ -91,7 +83,7 @@ def grid_to_geotiff(
 ) -> GridSpec:
     """Rasterize points into a GeoTIFF in one streaming pass; returns the grid spec."""
     progress = progress or no_progress
-    _check_not_same(paths, out_path)
+    check_not_input(out_path, paths)
     src = open_points(paths, format=format)
     if src.info.count == 0:
         raise InputError(f"{src.info.path}: the point set is empty; nothing to grid")

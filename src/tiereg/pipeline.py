@@ -18,7 +18,7 @@ from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
 from .coarse.similarity import register_similarity
-from .crs import crs_label, crs_units
+from .crs import crs_label, crs_units, is_geographic
 from .errors import InputError
 from .fine import METHODS as FINE_METHODS
 from .fine import FineResult, register_fine
@@ -180,7 +180,12 @@ def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> 
         return ArraySource(points)
     if isinstance(points, np.ndarray):
         return ArraySource(PointSet(points, source=f"<{role} array>"))
-    return open_points(points, format=fmt)
+    source = open_points(points, format=fmt)
+    if is_geographic(source.info.crs_wkt):  # degrees: cells, shifts and scales are meaningless
+        raise InputError(f"{source.info.path}: the {role} coordinates are longitude and latitude "
+                         f"({crs_label(source.info.crs_wkt)}); reproject to a projected CRS "
+                         "(metres or feet, e.g. UTM) first")
+    return source
 
 
 def _path_args(points: object) -> tuple[str, ...]:
@@ -425,7 +430,20 @@ def register(
     if fine != "none" and confident:
         fine_result = register_fine(T_local.apply(mov_local), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
-        if fine_result.refused:
+        if fine_result.contradicts_coarse:
+            # the surface puts the block elsewhere than the coarse stage did: neither is sure
+            confident = False
+            start = "starting pose" if coarse == "none" else "coarse answer"
+            reasons.append(f"the fine stage contradicts the {start}: "
+                           f"{fine_result.refused}; check the inputs (noise points in the "
+                           "lidar not classed as noise, a wrong unit or CRS)")
+        elif fine_result.refused and coarse == "none":
+            # nothing but the fine stage vouches for a given starting pose
+            confident = False
+            reasons.append(f"the fine stage could not confirm the starting pose: "
+                           f"{fine_result.refused}; give a closer --initial, or let the coarse "
+                           "stage find the pose")
+        elif fine_result.refused:
             warnings.append(f"the fine answer was refused: {fine_result.refused}; the "
                             "coarse answer stands (try --fine icp-plane, or check the inputs)")
         else:

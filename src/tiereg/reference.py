@@ -7,7 +7,7 @@ can register many tie-point sets, without reading the lidar again. The base grid
 surface for sub-cell refinement.
 
 Tie points lie on the visible surface (roofs, canopy), so lidar is gridded from first returns
-when the file records returns.
+when the file records returns; points classed as noise or withheld are left out.
 """
 
 from __future__ import annotations
@@ -27,6 +27,9 @@ from .progress import ProgressFactory, no_progress
 
 MAX_BASE_CELLS = 40_000_000
 FINE_FACTOR = 8  # the base cell is at most this much finer than a coarse cell
+# ASPRS classes of points that are not the surface: low point (noise) and high noise; a few
+# birds or multipath returns hundreds of metres off would pull whole cells of the grids
+NOISE_CLASSES = (7, 18)
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,16 +70,24 @@ class Reference:
             return self._cache[k]
 
     def local_chunks(self) -> Iterator[np.ndarray]:
-        """The reference points again, chunk by chunk, in local coordinates (first returns when
-        the base grid was made from them)."""
+        """The reference points again, chunk by chunk, in local coordinates: those the base grid
+        was made from (:func:`_chunks`)."""
         for chunk in _chunks(self.source, self.first_returns_only):
             yield chunk - self.origin
 
 
 def _chunks(source: PointSource, first_only: bool) -> Iterator[np.ndarray]:
-    if first_only:
-        return source.chunks(keep=lambda r: np.asarray(r.return_number) <= 1)  # type: ignore
-    return source.chunks()
+    """The points that describe the surface: of a LAS/LAZ file, not those classed as noise
+    (:data:`NOISE_CLASSES`) or withheld, and with ``first_only`` first returns only."""
+    if not isinstance(source, LasSource):
+        return source.chunks()
+
+    def keep(r) -> np.ndarray:
+        ok = ~np.isin(np.asarray(r.classification), NOISE_CLASSES) & ~np.asarray(r.withheld,
+                                                                                  dtype=bool)
+        return ok & (np.asarray(r.return_number) <= 1) if first_only else ok
+
+    return source.chunks(keep=keep)  # type: ignore[call-arg]
 
 
 def aggregate(grid: Grid, k: int, *, stats: tuple[str, ...] = ("mean",)) -> Grid:

@@ -250,9 +250,11 @@ class Transform:
 
     @classmethod
     def from_text(cls, text: str) -> Transform:
-        """Parse 16 whitespace-separated numbers (PDAL or CloudCompare form)."""
+        """Parse 16 whitespace-separated numbers (PDAL or CloudCompare form); lines that start
+        with ``#`` or ``//`` are comments."""
+        lines = (ln for ln in text.splitlines() if not ln.lstrip().startswith(("#", "//")))
         try:
-            values = [float(v) for v in text.replace(",", " ").split()]
+            values = [float(v) for v in " ".join(lines).replace(",", " ").split()]
         except ValueError as exc:
             raise InputError(f"a matrix text must hold 16 numbers: {exc}") from None
         if len(values) != 16:

@@ -58,6 +58,9 @@ class FineResult:
     n_lidar: int  # lidar points read near the tie points
     seconds: float
     refused: str = ""  # why the fine answer was refused (the coarse pose stands); "" if accepted
+    # refused because it would move the block farther than the coarse stage's uncertainty: the
+    # two stages contradict each other, so the coarse answer cannot be trusted either
+    contradicts_coarse: bool = False
     # the lidar points it read near the tie points (local frame), for the quality statistics;
     # the pipeline drops them once used
     lidar: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -197,10 +200,11 @@ def register_fine(
             again = solve_helmert(q, near, hold_displacement=hold)
             if again.n_observed >= 10:
                 fit = replace(again, T=again.T @ fit.T)
-    refused = _refusal(fit, placed, observe, start_spread, MAX_MOVE_CELLS * cell_size,
-                       require_convergence=method in ("lsm", "planes"))
+    refused, contradicts = _refusal(fit, placed, observe, start_spread,
+                                    MAX_MOVE_CELLS * cell_size,
+                                    require_convergence=method in ("lsm", "planes"))
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
-                      lidar)
+                      contradicts, lidar)
 
 
 def _within(points: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:
@@ -217,23 +221,25 @@ def _spread(observe: Observer, q: np.ndarray) -> float:
 
 
 def _refusal(fit: HelmertFit, placed: np.ndarray, observe: Observer, start_spread: float,
-             max_move: float, *, require_convergence: bool = True) -> str:
-    """Why the fine answer must not replace the coarse pose ("" when it may). The classic ICP
-    variants, run for comparison, often end at the iteration limit still creeping along a
-    surface; they are judged by where they end, without ``require_convergence``."""
+             max_move: float, *, require_convergence: bool = True) -> tuple[str, bool]:
+    """Why the fine answer must not replace the coarse pose ("" when it may), and whether it is
+    because the two contradict each other (the fine answer moves the block farther than the
+    coarse stage's uncertainty). The classic ICP variants, run for comparison, often end at the
+    iteration limit still creeping along a surface; they are judged by where they end, without
+    ``require_convergence``."""
     if fit.n_observed < 10:
-        return "too few tie points have a lidar surface near them"
+        return "too few tie points have a lidar surface near them", False
     if require_convergence and not fit.converged:
-        return f"it did not converge in {fit.iterations} iterations"
+        return f"it did not converge in {fit.iterations} iterations", False
     moved = float(np.sqrt(np.mean(np.sum((fit.T.apply(placed) - placed) ** 2, axis=1))))
     if not math.isfinite(moved) or moved > max_move:
         return (f"it would move the block by {moved:.3g} (RMS), more than the coarse stage's "
-                f"uncertainty ({max_move:.3g})")
+                f"uncertainty ({max_move:.3g})"), True
     end_spread = _spread(observe, fit.T.apply(placed))
     if not end_spread <= start_spread * 1.02:
         return (f"it leaves the tie points farther from the lidar surface (spread "
-                f"{end_spread:.3g} against {start_spread:.3g} at the coarse pose)")
-    return ""
+                f"{end_spread:.3g} against {start_spread:.3g} at the coarse pose)"), False
+    return "", False
 
 
 def _no_observations(q: np.ndarray):

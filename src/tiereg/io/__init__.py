@@ -35,6 +35,7 @@ __all__ = [
     "PointSource",
     "SourceInfo",
     "atomic_output",
+    "check_not_input",
     "detect_format",
     "open_points",
     "read_points",
@@ -169,6 +170,26 @@ def detect_format(path: str | os.PathLike[str], *, format: str | None = None) ->
         f"{p}: unknown point format (suffix {suffix or 'none'!r}); tiereg reads {_SUPPORTED} - "
         "convert the file or name its format with --moving-format/--reference-format"
     )
+
+
+def check_not_input(out: str | os.PathLike[str], *inputs: object) -> None:
+    """Refuse an output path that names one of the ``inputs`` (paths, globs, folders of tiles or
+    COLMAP models, or lists of them; arrays are skipped): writing it would destroy the input.
+    Links count: the test is whether the two names are one file."""
+    target = Path(out)
+    if not target.is_file():
+        return
+    for item in inputs:
+        items = [item] if isinstance(item, (str, os.PathLike)) else (
+            list(item) if isinstance(item, (list, tuple)) else [])
+        for s in map(os.fspath, items):
+            p = Path(s)
+            files = ([Path(m) for m in glob.glob(s)] if not p.exists()
+                     else [q for q in p.iterdir() if q.is_file()] if p.is_dir() else [p])
+            for f in files:
+                if f.is_file() and os.path.samefile(f, target):
+                    raise InputError(f"{out}: the output would overwrite the input {f}; "
+                                     "choose another output name")
 
 
 def _expand(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:

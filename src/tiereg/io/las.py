@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..crs import crs_label, same_crs
 from ..errors import FormatError, InputError
 from .base import DEFAULT_CHUNK, PointSource, SourceInfo, atomic_output
 
@@ -93,6 +94,13 @@ class LasSource(PointSource):
         lo = np.min([h.mins for h in self.headers], axis=0)
         hi = np.max([h.maxs for h in self.headers], axis=0)
         first = self.headers[0]
+        wkts = [_crs_wkt(h) for h in self.headers]
+        crs_wkt = next((w for w in wkts if w), None)  # tiles without a CRS record take it
+        for path, wkt in zip(self.paths, wkts):
+            if not same_crs(crs_wkt, wkt):
+                raise InputError(
+                    f"{path}: its CRS ({crs_label(wkt)}) is not that of the other tiles "
+                    f"({crs_label(crs_wkt)}); reproject the tiles to one CRS first")
         label = str(self.paths[0]) if len(self.paths) == 1 else (
             f"{self.paths[0].parent}/ ({len(self.paths)} tiles)"
         )
@@ -101,7 +109,7 @@ class LasSource(PointSource):
             format="las",
             count=count,
             bounds=(tuple(map(float, lo)), tuple(map(float, hi))),  # type: ignore[arg-type]
-            crs_wkt=_crs_wkt(first),
+            crs_wkt=crs_wkt,
             details={
                 "version": str(first.version),
                 "point_format": int(first.point_format.id),

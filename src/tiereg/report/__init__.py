@@ -99,7 +99,8 @@ def _correlation_window(result) -> np.ndarray | None:
     if re <= rs or ce <= cs:
         return None
     out[rs - r0:re - r0, cs - c0:ce - c0] = score[rs:re, cs:ce]
-    return out
+    # no shift near the answer overlaps enough to score (a registration that failed)
+    return out if np.isfinite(out).any() else None
 
 
 def report_from_result_file(result_json: str | os.PathLike[str],
