@@ -246,3 +246,19 @@ def test_las_writes_keep_the_source_header(scene_files, tmp_path, capsys):
     out = laspy.open(tmp_path / "o.laz")
     assert out.header.point_format.id == src.header.point_format.id
     assert np.allclose(out.header.scales, src.header.scales)
+
+
+def test_apply_keeps_the_crs_forward_and_drops_it_into_the_model_frame(tmp_path, capsys):
+    """Forward, the points stay in their CRS; the inverse carries them into a model's frame,
+    which no CRS describes: the output must not claim the input's."""
+    unit = np.column_stack([np.random.default_rng(2).uniform(0, 1, (300, 2)), np.zeros(300)])
+    _las_in(tmp_path / "utm.las", unit * [1000, 1000, 1] + [500000, 5000000, 0], 32632)
+    (tmp_path / "t.txt").write_text(Transform.from_parameters(
+        scale=0.5, translation=(-250000.0, -2500000.0, 0.0)).to_pdal())
+    for inverse, crs in ((False, "EPSG:32632"), (True, None)):
+        out = tmp_path / f"out-{inverse}.las"
+        code, _, _ = run(["apply", *(["--inverse"] if inverse else []), tmp_path / "t.txt",
+                          tmp_path / "utm.las", out], capsys)
+        parsed = laspy.read(out).header.parse_crs()
+        assert code == 0
+        assert (parsed is None) if crs is None else parsed.equals(crs)

@@ -360,8 +360,9 @@ def _cmd_apply(args: argparse.Namespace) -> int:
     T = _load_transform(args.transform)
     if args.inverse:
         T = T.inverse
+    # the inverse carries reference data into the model's frame, which has no CRS of its own
     apply_to_file(T, args.input, args.output, format=args.format,
-                  progress=_progress_factory(args.quiet))
+                  progress=_progress_factory(args.quiet), keep_crs=not args.inverse)
     if not args.quiet:
         print(f"wrote {args.output}")
     return EXIT_OK

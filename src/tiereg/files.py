@@ -29,12 +29,14 @@ def apply_to_file(
     *,
     format: str | None = None,
     progress: ProgressFactory | None = None,
+    keep_crs: bool = True,
 ) -> None:
     """Transform a point file or a DSM into ``out_path``.
 
     LAS/LAZ to LAS/LAZ streams chunk by chunk and keeps every point attribute. A GeoTIFF DSM is
     transformed through its cell centres and re-gridded at ``scale x`` its cell size (to a GeoTIFF
-    output) or written as points (to a point format).
+    output) or written as points (to a point format). ``keep_crs=False``: the output is in a
+    frame that is not the input's (a reference into a model's), so it names no CRS.
     """
     progress = progress or no_progress
     check_not_input(out_path, source_path)
@@ -44,7 +46,7 @@ def apply_to_file(
     if isinstance(src, LasSource) and suffix in (".las", ".laz"):
         bar = progress(f"transforming {Path(source_path).name}", src.info.count)
         try:
-            transform_las(src, out, T.apply, progress=bar.update)
+            transform_las(src, out, T.apply, progress=bar.update, keep_crs=keep_crs)
         finally:
             bar.close()
         return
@@ -52,13 +54,13 @@ def apply_to_file(
         if not isinstance(src, RasterSource):
             raise InputError(f"{out}: GeoTIFF output is for DSM inputs; to grid points use "
                              "'tiereg grid' after 'tiereg apply'")
-        _apply_to_raster(T, src, out)
+        _apply_to_raster(T, src, out, crs_wkt=src.info.crs_wkt if keep_crs else None)
         return
     pts = src.read()
-    write_points(out, T.apply(pts.xyz), like=src, crs_wkt=src.info.crs_wkt)
+    write_points(out, T.apply(pts.xyz), like=src, crs_wkt=src.info.crs_wkt if keep_crs else None)
 
 
-def _apply_to_raster(T: Transform, src: RasterSource, out: Path) -> None:
+def _apply_to_raster(T: Transform, src: RasterSource, out: Path, *, crs_wkt: str | None) -> None:
     cell = float(src.info.details["cell_size"][0]) * T.scale
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for chunk in src.chunks():  # first pass: the footprint after the transform
@@ -69,7 +71,7 @@ def _apply_to_raster(T: Transform, src: RasterSource, out: Path) -> None:
     # a rotation leaves single empty cells between moved centres: fill those, not the outside
     filled, support = fill_normalized(grid["mean"], grid.mask, sigma_cells=0.7, min_support=0.5)
     values = np.where(grid.mask, grid["mean"], np.where(support, filled, np.nan))
-    write_geotiff(out, values, spec, crs_wkt=src.info.crs_wkt)
+    write_geotiff(out, values, spec, crs_wkt=crs_wkt)
 
 
 def grid_to_geotiff(

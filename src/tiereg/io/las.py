@@ -154,8 +154,12 @@ class LasSource(PointSource):
                 ) from None
 
 
-def _header_like(src_header):
-    """A new header with the source's version, point format, scales, offsets and VLRs (CRS).
+CRS_VLR_USER = "LASF_Projection"  # the user ID of the records that hold a CRS (GeoTIFF keys, WKT)
+
+
+def _header_like(src_header, *, keep_crs: bool = True):
+    """A new header with the source's version, point format, scales, offsets and VLRs (CRS
+    included unless not ``keep_crs``).
 
     laspy writes LAS 1.1-1.4; a LAS 1.0 source is written as 1.1, whose records are the same.
     """
@@ -165,7 +169,8 @@ def _header_like(src_header):
     header.scales = np.array(src_header.scales)
     header.offsets = np.array(src_header.offsets)
     for vlr in src_header.vlrs:
-        header.vlrs.append(vlr)
+        if keep_crs or vlr.user_id != CRS_VLR_USER:
+            header.vlrs.append(vlr)
     return header
 
 
@@ -231,8 +236,10 @@ def transform_las(
     *,
     chunk_size: int = DEFAULT_CHUNK,
     progress: Callable[[int], None] | None = None,
+    keep_crs: bool = True,
 ) -> None:
     """Stream every point of ``source`` through ``apply`` into a new LAS/LAZ file.
+    ``keep_crs=False``: the output is in another frame, so the source's CRS records are left out.
 
     All point attributes are kept; the header keeps version, point format, scales, VLRs and CRS,
     with offsets moved only if needed. Memory stays at one chunk. Only a single-file source can be
@@ -247,7 +254,7 @@ def transform_las(
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])
     moved = apply(corners)
-    header = _header_like(src_header)
+    header = _header_like(src_header, keep_crs=keep_crs)
     _fit_offsets(header, moved.min(axis=0), moved.max(axis=0))
     compress = out_path.suffix.lower() == ".laz"
     with atomic_output(out_path) as tmp:
