@@ -42,6 +42,23 @@ def test_all_nodata_raster(tmp_path):
         open_points(path)
 
 
+def test_rasters_that_are_no_surface_of_heights_are_refused(tmp_path, recwarn):
+    rgb = tmp_path / "ortho.tif"  # an orthophoto given by mistake
+    with rasterio.open(rgb, "w", driver="GTiff", height=4, width=4, count=3, dtype="uint8",
+                       crs="EPSG:32616", transform=Affine(2.0, 0, 627000.0, 0, -2.0, 4323900.0)
+                       ) as ds:
+        ds.write(np.full((3, 4, 4), 128, np.uint8))
+    with pytest.raises(InputError, match="ortho.tif.*3 bands.*single-band DSM"):
+        open_points(rgb)
+    plain = tmp_path / "plain.tif"  # no CRS and no geotransform: pixel coordinates
+    with rasterio.open(plain, "w", driver="GTiff", height=4, width=4, count=1,
+                       dtype="float32") as ds:
+        ds.write(np.full((4, 4), 200.0, np.float32), 1)
+    with pytest.raises(InputError, match="plain.tif.*no georeference"):
+        open_points(plain)
+    assert not [w for w in recwarn if "georeferenced" in str(w.message).lower()]
+
+
 def test_corrupt_tif(tmp_path):
     bad = tmp_path / "bad.tif"
     bad.write_bytes(b"II*\x00" + b"\x00" * 50)

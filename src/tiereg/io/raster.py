@@ -7,6 +7,7 @@ gridding code serves lidar and DSMs and memory stays bounded. Nodata cells are s
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -33,18 +34,29 @@ class RasterSource(PointSource):
         rasterio = _rasterio()
         self.path = Path(path)
         try:
-            with rasterio.open(self.path) as ds:
-                self.transform = ds.transform
-                self.shape = (ds.height, ds.width)
-                self.nodata = ds.nodata
-                crs = ds.crs.to_wkt() if ds.crs else None
-                bounds = ds.bounds
-                self.block_rows = max(1, DEFAULT_CHUNK // max(ds.width, 1))
+            with warnings.catch_warnings():  # said below, in one line, as an error
+                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+                with rasterio.open(self.path) as ds:
+                    self.transform = ds.transform
+                    self.shape = (ds.height, ds.width)
+                    self.nodata = ds.nodata
+                    crs = ds.crs.to_wkt() if ds.crs else None
+                    bounds = ds.bounds
+                    self.block_rows = max(1, DEFAULT_CHUNK // max(ds.width, 1))
+                    bands, dtype = ds.count, ds.dtypes[0]
         except rasterio.errors.RasterioIOError as exc:
             raise FormatError(
                 f"{self.path}: not a readable GeoTIFF ({str(exc).splitlines()[0][:160]}); "
                 "check the file"
             ) from None
+        if bands != 1:  # an orthophoto (RGB, RGBA): no heights
+            raise InputError(
+                f"{self.path}: a raster of {bands} bands ({dtype}) is not a surface of heights; "
+                "give a single-band DSM/DEM")
+        if crs is None and self.transform.is_identity:
+            raise InputError(
+                f"{self.path}: the raster has no georeference (no CRS, no geotransform), so its "
+                "cells have no place on the ground; export it as a GeoTIFF with both")
         if abs(self.transform.b) > 0 or abs(self.transform.d) > 0:
             raise InputError(
                 f"{self.path}: rotated rasters are not supported; warp it north-up first "
