@@ -150,6 +150,8 @@ def _cases(tmp: Path, good_lidar: Path, good_ties: Path):
         ds.write(np.full((5, 5), -9999.0, np.float32), 1)
     (tmp / "nothing").mkdir()
     (tmp / "nothing" / "notes.txt").write_text("no points here")
+    # semicolon columns with decimal commas: named a text file, read as one, and told why not
+    (tmp / "decomma.csv").write_text("".join(f"{i},5;{2 * i},25;100,0\n" for i in range(50)))
     (tmp / "mixed").mkdir()
     unit = np.column_stack([np.random.default_rng(1).uniform(0, 1, (500, 2)), np.zeros(500)])
     _las_in(tmp / "mixed" / "a.las", unit * [1000, 1000, 1] + [500000, 5000000, 0], 32632)
@@ -178,6 +180,8 @@ def _cases(tmp: Path, good_lidar: Path, good_ties: Path):
         ("result onto the lidar", reg + [good_ties, good_lidar, "-o", good_lidar], "overwrite"),
         ("points onto the tie points", reg + [good_ties, good_lidar, "-o", out,
                                              "--output-points", good_ties], "overwrite"),
+        ("decimal commas", reg + [tmp / "decomma.csv", good_lidar, "-o", out],
+         "decimal point"),
         ("tiles in two CRSs", reg + [good_ties, tmp / "mixed", "-o", out], "one crs"),
         ("longitude and latitude", reg + [good_ties, tmp / "lonlat.las", "-o", out],
          "projected crs"),

@@ -118,7 +118,9 @@ def describe(paths: PathsLike, *, format: str | None = None) -> dict[str, Any]:
         out["y_range"] = f"{lo[1]:.3f} .. {hi[1]:.3f}"
         out["z_range"] = f"{lo[2]:.3f} .. {hi[2]:.3f}"
         area = (hi[0] - lo[0]) * (hi[1] - lo[1])
-        if area > 0 and info.format != "geotiff":
+        if not math.isfinite(area):
+            out["warning"] = "some coordinates are not finite (inf or NaN): fix the file"
+        elif area > 0 and info.format != "geotiff":
             out["density_per_unit2"] = round(info.count / area, 6)
             out["suggested_cell_size"] = nice_size(math.sqrt(0.64 * area / max(info.count, 1)))
     out["crs"] = crs_label(info.crs_wkt)

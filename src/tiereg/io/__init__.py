@@ -134,6 +134,16 @@ def _head(path: Path) -> bytes:
         return fh.read(4096)
 
 
+def _is_text(head: bytes) -> bool:
+    """Whether the file's first bytes read as text (no NUL, decodable as UTF-8 or latin-1
+    printable characters for the most part)."""
+    if b"\x00" in head:
+        return False
+    text = head.decode("latin-1")
+    printable = sum(c.isprintable() or c in "\r\n\t" for c in text)
+    return printable >= 0.95 * len(text)
+
+
 def detect_format(path: str | os.PathLike[str], *, format: str | None = None) -> str:
     """The registry name of ``path``'s format, by content first and then by name."""
     p = Path(path)
@@ -164,8 +174,9 @@ def detect_format(path: str | os.PathLike[str], *, format: str | None = None) ->
             f"{p}: does not start with the LAS signature 'LASF' - the file is corrupt or not "
             "LAS/LAZ; re-export it or give its real format with --moving-format/--reference-format"
         )
-    if FORMATS["xyz"].sniff(p, head):
-        return "xyz"
+    if FORMATS["xyz"].sniff(p, head) or (suffix in FORMATS["xyz"].suffixes
+                                          and _is_text(head)):
+        return "xyz"  # a text file by its name: its reader says what it cannot read, and why
     raise FormatError(
         f"{p}: unknown point format (suffix {suffix or 'none'!r}); tiereg reads {_SUPPORTED} - "
         "convert the file or name its format with --moving-format/--reference-format"
