@@ -141,6 +141,41 @@ def test_a_starting_pose_the_fine_stage_cannot_confirm_is_not_confident():
             assert np.hypot(*err[0, :2]) < 0.1 * truth.cell_size
 
 
+def test_stray_points_far_outside_the_block_are_left_out_of_the_estimation():
+    """A nodata height (-9999) and a point left at the origin among the tie points: the
+    registration is that of the others, both are named in the warnings, and every row is still
+    reported (the residuals keep the file's rows)."""
+    tie = make_tie_points(open_points(sample_lidar()).read().xyz)
+    clean = register(tie, sample_lidar())
+    stray = tie.copy()
+    stray[7, 2] = -9999.0
+    stray[300] = 0.0
+    result = register(stray, sample_lidar())
+    assert result.confident
+    centre = tie.mean(axis=0, keepdims=True)
+    err = result.T_ref_mov.apply(centre) - clean.T_ref_mov.apply(centre)
+    assert np.abs(err).max() < 0.05 * clean.cell_size
+    assert "row(s) 7, 300" in " ".join(result.warnings)
+    assert len(result.residuals.xyz) == len(tie) and np.isnan(result.residuals.weight[[7, 300]]
+                                                               ).all()
+
+
+def test_gross_outliers_are_strays_not_the_relief():
+    from tiereg.points import gross_outliers
+
+    rng = np.random.default_rng(3)
+    xyz = np.column_stack([rng.uniform(0, 3000, 2000) + 5e5, rng.uniform(0, 3000, 2000) + 5e6,
+                           rng.normal(100, 0.3, 2000)])  # level farmland
+    xyz[:15, 2] += 25.0  # trees and farmsteads: the relief, not strays
+    xyz[20, 2], xyz[21] = -9999.0, 0.0
+    assert np.flatnonzero(gross_outliers(xyz)).tolist() == [20, 21]
+    xyz[30:60, 2] = -9999.0  # 1.6 % of the points down there: part of the data, not strays
+    assert np.flatnonzero(gross_outliers(xyz)).tolist() == [21]
+    xyz[60:72, 2], xyz[72:84, 2] = -9999.0, 9999.0  # 2.9 % off either way: none are strays
+    xyz[30:60, 2] = 100.0
+    assert not gross_outliers(xyz).any()
+
+
 @pytest.mark.parametrize("points, fragment", [
     (np.zeros((0, 3)), "empty"),
     (np.random.default_rng(0).uniform(0, 100, (10, 3)), "at least"),

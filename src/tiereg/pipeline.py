@@ -33,7 +33,7 @@ from .level import (
     vertical_from_cameras,
     vertical_from_points,
 )
-from .points import PointSet, validate_points
+from .points import PointSet, gross_outliers, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats, PointResiduals
 from .reference import Reference, base_cell_for, point_spacing, prepare_reference
@@ -186,6 +186,13 @@ def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> 
                          f"({crs_label(source.info.crs_wkt)}); reproject to a projected CRS "
                          "(metres or feet, e.g. UTM) first")
     return source
+
+
+def _scatter(values: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``values`` of the points set in ``where``, NaN for the others: a value per point."""
+    out = np.full(len(where), np.nan)
+    out[where] = values
+    return out
 
 
 def _path_args(points: object) -> tuple[str, ...]:
@@ -361,10 +368,15 @@ def register(
     mov_src = _as_source(moving, moving_format, "moving")
     mov = mov_src.read()
     validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
+    # a few points far outside the block would set the levelling, the cell size, the tie grid's
+    # extent and how far the fine stage moves the block: they are left out of all estimation,
+    # and still transformed and reported like every point
+    stray = gross_outliers(mov.xyz)
+    keep = ~stray
     if initial is None and coarse != "none" and level != "none":
-        vertical = find_vertical(mov_src, mov.xyz, mode=level)
+        vertical = find_vertical(mov_src, mov.xyz[keep], mode=level)
         if vertical is not None:
-            return _register_levelled(vertical, mov_src, mov.xyz.mean(axis=0), moving,
+            return _register_levelled(vertical, mov_src, mov.xyz[keep].mean(axis=0), moving,
                                       reference, coarse=coarse,
                                       fine=fine, cell_size=cell_size,
                                       reference_format=reference_format, progress=progress)
@@ -372,9 +384,9 @@ def register(
         initial = Transform(np.asarray(initial, dtype=np.float64))
     mov_xyz = mov.xyz if initial is None else initial.apply(mov.xyz)
     T_start = Transform.identity() if initial is None else initial
-    o_mov = np.round(mov_xyz.mean(axis=0))
+    o_mov = np.round(mov_xyz[keep].mean(axis=0))
     mov_local = mov_xyz - o_mov
-    tie_cell = cell_size_from_density(mov_local)  # model units
+    tie_cell = cell_size_from_density(mov_local[keep])  # model units
     if cell_size is None:
         cell_size = tie_cell
     elif not (cell_size > 0 and math.isfinite(cell_size)):
@@ -413,9 +425,9 @@ def register(
         reasons.append("no coarse registration was asked for (--coarse none)")
     else:
         if coarse == "pomf":
-            coarse_result = register_translation(mov_local, grid, reference_fine=fine_grid)
+            coarse_result = register_translation(mov_local[keep], grid, reference_fine=fine_grid)
         else:  # search, auto
-            coarse_result = register_similarity(mov_local, ref, tie_cell=tie_cell,
+            coarse_result = register_similarity(mov_local[keep], ref, tie_cell=tie_cell,
                                                 method=coarse, free_tilt=free_tilt)
         T_local = coarse_result.T_ref_mov
         coarse_result = replace(coarse_result,
@@ -426,9 +438,15 @@ def register(
     T_before_fine = T_local
     fine_result: FineResult | None = None
     warnings: list[str] = []
+    if stray.any():
+        rows = np.flatnonzero(stray)
+        warnings.append(f"{len(rows)} moving point(s) far outside the block (row(s) "
+                        f"{', '.join(map(str, rows[:5]))}{' ...' if len(rows) > 5 else ''}, "
+                        "from 0) were left out of the estimation: check them (a nodata height "
+                        "such as -9999?)")
     fine_note = "not asked for (--fine none)"
     if fine != "none" and confident:
-        fine_result = register_fine(T_local.apply(mov_local), ref, cell_size=cell_size,
+        fine_result = register_fine(T_local.apply(mov_local[keep]), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
         if fine_result.contradicts_coarse:
             # the surface puts the block elsewhere than the coarse stage did: neither is sure
@@ -467,8 +485,8 @@ def register(
     accepted = fine_result is not None and not fine_result.refused
     residuals = PointResiduals.from_dz(
         placed + o_ref, height_differences(T_before_fine.apply(mov_local), surface), dz_after,
-        np.where(np.isfinite(fine_result.fit.residuals), fine_result.fit.weights, np.nan)
-        if accepted else None)
+        _scatter(np.where(np.isfinite(fine_result.fit.residuals), fine_result.fit.weights,
+                          np.nan), keep) if accepted else None)
     T_ref_mov = _to_world(T_local, o_ref, o_mov) @ T_start
     inputs = Inputs(
         moving=mov_src.info.path,

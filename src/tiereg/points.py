@@ -41,6 +41,23 @@ class PointSet:
         return self.xyz.min(axis=0), self.xyz.max(axis=0)
 
 
+GROSS_FENCE = 3.0  # spans of the 1st-99th percentiles beyond either end: far outside the block
+MAX_GROSS_SHARE = 0.01  # more points than this out there are not strays but part of the data
+
+
+def gross_outliers(xyz: np.ndarray) -> np.ndarray:
+    """Which points lie far outside the block: beyond :data:`GROSS_FENCE` times the span of the
+    1st to 99th percentiles past either end, on any axis (a nodata height such as -9999, a point
+    left at the origin). None when more than :data:`MAX_GROSS_SHARE` of the points would be.
+    The height span counts as at least a hundredth of the horizontal one (a level block's is
+    nearly nothing)."""
+    lo, hi = np.percentile(xyz, [1.0, 99.0], axis=0)
+    span = hi - lo
+    span = np.maximum(span, 0.01 * max(span[0], span[1]))
+    far = np.any((xyz < lo - GROSS_FENCE * span) | (xyz > hi + GROSS_FENCE * span), axis=1)
+    return far if far.sum() <= MAX_GROSS_SHARE * len(xyz) else np.zeros(len(xyz), bool)
+
+
 def validate_points(points: PointSet, *, min_count: int, role: str) -> None:
     """Reject point sets that no registration can use, naming the file and the fix.
 
