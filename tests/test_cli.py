@@ -18,7 +18,7 @@ from scenes import make_scene
 
 from tiereg import Transform
 from tiereg.cli import main
-from tiereg.io import read_points, write_points
+from tiereg.io import open_points, read_points, write_points
 from tiereg.io.text import write_xyz
 
 SHIFT = Transform.from_translation((-2000.0, 1500.0, -20.0))
@@ -266,3 +266,24 @@ def test_apply_keeps_the_crs_forward_and_drops_it_into_the_model_frame(tmp_path,
         parsed = laspy.read(out).header.parse_crs()
         assert code == 0
         assert (parsed is None) if crs is None else parsed.equals(crs)
+
+
+def test_apply_with_a_result_writes_the_reference_crs(tmp_path, capsys):
+    """Tie points without a CRS, registered to lidar with one: applied with the RESULT.json they
+    come out in the lidar's frame and say so; the lidar carried into the model's frame says
+    nothing."""
+    from tiereg.demo import make_tie_points, sample_lidar
+
+    lidar = sample_lidar()
+    np.savetxt(tmp_path / "ties.xyz", make_tie_points(open_points(lidar).read().xyz))
+    code, _, _ = run(["register", tmp_path / "ties.xyz", lidar, "-o", tmp_path / "R.json",
+                      "--fine", "none", "-q"], capsys)
+    assert code == 0
+    lidar_crs = laspy.read(lidar).header.parse_crs()
+    assert lidar_crs is not None
+    code, _, _ = run(["apply", tmp_path / "R.json", tmp_path / "ties.xyz", tmp_path / "t.las"],
+                     capsys)
+    assert code == 0 and laspy.read(tmp_path / "t.las").header.parse_crs().equals(lidar_crs)
+    code, _, _ = run(["apply", "--inverse", tmp_path / "R.json", lidar, tmp_path / "l.laz"],
+                     capsys)
+    assert code == 0 and laspy.read(tmp_path / "l.laz").header.parse_crs() is None

@@ -354,15 +354,29 @@ def _load_transform(path: str):
         raise InputError(f"{p}: {exc}") from None
 
 
+def _reference_crs(path: str) -> str | None:
+    """The reference's CRS (WKT) that a RESULT.json names, else ``None``."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+        wkt = data["inputs"]["crs_wkt"]
+    except (OSError, ValueError, KeyError, TypeError):  # a matrix file, or an older RESULT.json
+        return None
+    return wkt if isinstance(wkt, str) and wkt else None
+
+
 def _cmd_apply(args: argparse.Namespace) -> int:
     from .files import apply_to_file
+
+    from .io.las import SOURCE_CRS
 
     T = _load_transform(args.transform)
     if args.inverse:
         T = T.inverse
-    # the inverse carries reference data into the model's frame, which has no CRS of its own
+    # forward, into the reference's frame and so its CRS where RESULT.json names it; the inverse
+    # carries reference data into the model's frame, which no CRS describes
+    frame = None if args.inverse else (_reference_crs(args.transform) or SOURCE_CRS)
     apply_to_file(T, args.input, args.output, format=args.format,
-                  progress=_progress_factory(args.quiet), keep_crs=not args.inverse)
+                  progress=_progress_factory(args.quiet), crs_wkt=frame)
     if not args.quiet:
         print(f"wrote {args.output}")
     return EXIT_OK

@@ -14,7 +14,7 @@ from .crs import crs_label, crs_units
 from .errors import InputError
 from .grid import GridSpec, fill_normalized, median_sample_for, nice_size, rasterize
 from .io import check_not_input, open_points, write_points
-from .io.las import LasSource, transform_las
+from .io.las import SOURCE_CRS, LasSource, transform_las
 from .io.raster import RasterSource, write_geotiff
 from .progress import ProgressFactory, no_progress
 from .transform import Transform
@@ -29,24 +29,26 @@ def apply_to_file(
     *,
     format: str | None = None,
     progress: ProgressFactory | None = None,
-    keep_crs: bool = True,
+    crs_wkt: str | None = SOURCE_CRS,
 ) -> None:
     """Transform a point file or a DSM into ``out_path``.
 
     LAS/LAZ to LAS/LAZ streams chunk by chunk and keeps every point attribute. A GeoTIFF DSM is
     transformed through its cell centres and re-gridded at ``scale x`` its cell size (to a GeoTIFF
-    output) or written as points (to a point format). ``keep_crs=False``: the output is in a
-    frame that is not the input's (a reference into a model's), so it names no CRS.
+    output) or written as points (to a point format). The output names the input's CRS
+    (:data:`~tiereg.io.las.SOURCE_CRS`), ``crs_wkt`` (the frame the transform maps into: the
+    reference's), or none (``None``: a model's frame, which no CRS describes).
     """
     progress = progress or no_progress
     check_not_input(out_path, source_path)
     src = open_points(source_path, format=format)
     out = Path(out_path)
     suffix = out.suffix.lower()
+    frame_crs = src.info.crs_wkt if crs_wkt == SOURCE_CRS else crs_wkt
     if isinstance(src, LasSource) and suffix in (".las", ".laz"):
         bar = progress(f"transforming {Path(source_path).name}", src.info.count)
         try:
-            transform_las(src, out, T.apply, progress=bar.update, keep_crs=keep_crs)
+            transform_las(src, out, T.apply, progress=bar.update, crs_wkt=crs_wkt)
         finally:
             bar.close()
         return
@@ -54,10 +56,10 @@ def apply_to_file(
         if not isinstance(src, RasterSource):
             raise InputError(f"{out}: GeoTIFF output is for DSM inputs; to grid points use "
                              "'tiereg grid' after 'tiereg apply'")
-        _apply_to_raster(T, src, out, crs_wkt=src.info.crs_wkt if keep_crs else None)
+        _apply_to_raster(T, src, out, crs_wkt=frame_crs)
         return
     pts = src.read()
-    write_points(out, T.apply(pts.xyz), like=src, crs_wkt=src.info.crs_wkt if keep_crs else None)
+    write_points(out, T.apply(pts.xyz), like=src, crs_wkt=frame_crs)
 
 
 def _apply_to_raster(T: Transform, src: RasterSource, out: Path, *, crs_wkt: str | None) -> None:

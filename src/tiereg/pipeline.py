@@ -70,6 +70,7 @@ class Inputs:
             "n_reference": self.n_reference,
             "units": self.units,
             "crs": crs_label(self.crs_wkt),
+            "crs_wkt": self.crs_wkt,  # for `tiereg apply`: the frame T_ref_mov maps into
             "moving_paths": list(self.moving_args),
             "reference_paths": list(self.reference_args),
         }

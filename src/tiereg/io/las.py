@@ -155,11 +155,12 @@ class LasSource(PointSource):
 
 
 CRS_VLR_USER = "LASF_Projection"  # the user ID of the records that hold a CRS (GeoTIFF keys, WKT)
+SOURCE_CRS = "source"  # as a ``crs_wkt`` argument: the source's own CRS records, as they are
 
 
-def _header_like(src_header, *, keep_crs: bool = True):
-    """A new header with the source's version, point format, scales, offsets and VLRs (CRS
-    included unless not ``keep_crs``).
+def _header_like(src_header, *, crs_wkt: str | None = SOURCE_CRS):
+    """A new header with the source's version, point format, scales, offsets and VLRs; its CRS
+    records are kept (:data:`SOURCE_CRS`), or replaced by ``crs_wkt`` (``None``: no CRS).
 
     laspy writes LAS 1.1-1.4; a LAS 1.0 source is written as 1.1, whose records are the same.
     """
@@ -169,8 +170,12 @@ def _header_like(src_header, *, keep_crs: bool = True):
     header.scales = np.array(src_header.scales)
     header.offsets = np.array(src_header.offsets)
     for vlr in src_header.vlrs:
-        if keep_crs or vlr.user_id != CRS_VLR_USER:
+        if crs_wkt == SOURCE_CRS or vlr.user_id != CRS_VLR_USER:
             header.vlrs.append(vlr)
+    if crs_wkt not in (None, SOURCE_CRS):
+        import pyproj
+
+        header.add_crs(pyproj.CRS.from_wkt(crs_wkt))
     return header
 
 
@@ -201,14 +206,15 @@ def write_las(
 ) -> None:
     """Write ``xyz`` to LAS or LAZ (by suffix), atomically.
 
-    With ``like`` (a :class:`LasSource`), its version, point format, scales and CRS are kept;
-    without it, LAS 1.4 point format 6 with 1 mm scales is written.
+    With ``like`` (a :class:`LasSource`), its version, point format, scales and CRS are kept
+    (the CRS unless ``crs_wkt`` names another); without it, LAS 1.4 point format 6 with 1 mm
+    scales is written, in ``crs_wkt``.
     """
     laspy = _laspy()
     path = Path(path)
     xyz = np.asarray(xyz, dtype=np.float64)
     if isinstance(like, LasSource):
-        header = _header_like(like.headers[0])
+        header = _header_like(like.headers[0], crs_wkt=crs_wkt or SOURCE_CRS)
     else:
         header = laspy.LasHeader(version="1.4", point_format=6)
         header.scales = np.array([0.001, 0.001, 0.001])
@@ -236,10 +242,10 @@ def transform_las(
     *,
     chunk_size: int = DEFAULT_CHUNK,
     progress: Callable[[int], None] | None = None,
-    keep_crs: bool = True,
+    crs_wkt: str | None = SOURCE_CRS,
 ) -> None:
-    """Stream every point of ``source`` through ``apply`` into a new LAS/LAZ file.
-    ``keep_crs=False``: the output is in another frame, so the source's CRS records are left out.
+    """Stream every point of ``source`` through ``apply`` into a new LAS/LAZ file, in the
+    source's CRS or in ``crs_wkt`` (``None``: no CRS; the output is in a frame none describes).
 
     All point attributes are kept; the header keeps version, point format, scales, VLRs and CRS,
     with offsets moved only if needed. Memory stays at one chunk. Only a single-file source can be
@@ -254,7 +260,7 @@ def transform_las(
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])
     moved = apply(corners)
-    header = _header_like(src_header, keep_crs=keep_crs)
+    header = _header_like(src_header, crs_wkt=crs_wkt)
     _fit_offsets(header, moved.min(axis=0), moved.max(axis=0))
     compress = out_path.suffix.lower() == ".laz"
     with atomic_output(out_path) as tmp:
