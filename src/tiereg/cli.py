@@ -261,7 +261,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
                              "the points another name")
     if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
         raise InputError(f"--report {args.report}: is a file; give a folder for the report")
-    initial = _load_transform(args.initial) if args.initial else None
+    initial = _load_transform(args.initial)[0] if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
                       cell_size=args.cell_size, initial=initial, level=args.level,
                       free_tilt=args.free_tilt, moving_format=args.moving_format,
@@ -333,6 +333,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _load_transform(path: str):
+    """The transform of a RESULT.json or a matrix file, and the CRS (WKT) of the frame it maps
+    into where a RESULT.json names it (its reference's), else ``None``."""
     from .transform import Transform
 
     p = Path(path)
@@ -343,38 +345,30 @@ def _load_transform(path: str):
         data = json.loads(text)
     except json.JSONDecodeError:
         try:
-            return Transform.from_text(text)
+            return Transform.from_text(text), None
         except InputError as exc:
             raise InputError(f"{p}: {exc}") from None
     if not isinstance(data, dict):
         raise InputError(f"{p}: a transform JSON must be an object with 'T_ref_mov' or 'matrix'")
     try:
-        return Transform.from_dict(data)
+        T = Transform.from_dict(data)
     except InputError as exc:
         raise InputError(f"{p}: {exc}") from None
-
-
-def _reference_crs(path: str) -> str | None:
-    """The reference's CRS (WKT) that a RESULT.json names, else ``None``."""
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-        wkt = data["inputs"]["crs_wkt"]
-    except (OSError, ValueError, KeyError, TypeError):  # a matrix file, or an older RESULT.json
-        return None
-    return wkt if isinstance(wkt, str) and wkt else None
+    inputs = data.get("inputs")
+    wkt = inputs.get("crs_wkt") if isinstance(inputs, dict) else None
+    return T, (wkt if isinstance(wkt, str) and wkt else None)
 
 
 def _cmd_apply(args: argparse.Namespace) -> int:
     from .files import apply_to_file
-
     from .io.las import SOURCE_CRS
 
-    T = _load_transform(args.transform)
+    T, reference_crs = _load_transform(args.transform)
     if args.inverse:
         T = T.inverse
     # forward, into the reference's frame and so its CRS where RESULT.json names it; the inverse
     # carries reference data into the model's frame, which no CRS describes
-    frame = None if args.inverse else (_reference_crs(args.transform) or SOURCE_CRS)
+    frame = None if args.inverse else (reference_crs or SOURCE_CRS)
     apply_to_file(T, args.input, args.output, format=args.format,
                   progress=_progress_factory(args.quiet), crs_wkt=frame)
     if not args.quiet:

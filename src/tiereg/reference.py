@@ -83,8 +83,8 @@ def _chunks(source: PointSource, first_only: bool) -> Iterator[np.ndarray]:
         return source.chunks()
 
     def keep(r) -> np.ndarray:
-        ok = ~np.isin(np.asarray(r.classification), NOISE_CLASSES) & ~np.asarray(r.withheld,
-                                                                                  dtype=bool)
+        noise = np.isin(np.asarray(r.classification), NOISE_CLASSES)
+        ok = ~noise & ~np.asarray(r.withheld, dtype=bool)
         return ok & (np.asarray(r.return_number) <= 1) if first_only else ok
 
     return source.chunks(keep=keep)  # type: ignore[call-arg]

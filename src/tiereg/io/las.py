@@ -173,10 +173,14 @@ def _header_like(src_header, *, crs_wkt: str | None = SOURCE_CRS):
         if crs_wkt == SOURCE_CRS or vlr.user_id != CRS_VLR_USER:
             header.vlrs.append(vlr)
     if crs_wkt not in (None, SOURCE_CRS):
-        import pyproj
-
-        header.add_crs(pyproj.CRS.from_wkt(crs_wkt))
+        _add_crs(header, crs_wkt)
     return header
+
+
+def _add_crs(header, crs_wkt: str) -> None:
+    import pyproj
+
+    header.add_crs(pyproj.CRS.from_wkt(crs_wkt))
 
 
 def _fit_offsets(header, lo: np.ndarray, hi: np.ndarray) -> None:
@@ -220,9 +224,7 @@ def write_las(
         header.scales = np.array([0.001, 0.001, 0.001])
         header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
         if crs_wkt:
-            import pyproj
-
-            header.add_crs(pyproj.CRS.from_wkt(crs_wkt))
+            _add_crs(header, crs_wkt)
     if len(xyz):
         _fit_offsets(header, xyz.min(axis=0), xyz.max(axis=0))
     data = laspy.LasData(header)

@@ -71,9 +71,10 @@ def _parse_header(path: Path, fh: io.BufferedReader) -> tuple[str, list[_Element
             if key == "format":
                 fmt = words[1]
             elif key == "element":
-                if int(words[2]) < 0:  # a count: never negative
+                count = int(words[2])
+                if count < 0:  # a count: never negative
                     raise ValueError(words[2])
-                elements.append(_Element(words[1], int(words[2]), []))
+                elements.append(_Element(words[1], count, []))
             elif key == "property" and elements and words[1] == "list":
                 if words[2] not in _TYPES or words[3] not in _TYPES:
                     raise KeyError(words[2])
