@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
-.PHONY: install browser demo test bench bench-peers bench-quick clean
+.PHONY: install browser demo test test-fast bench bench-peers bench-quick clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,10 @@ demo: install
 
 test: install browser
 	$(BIN)/python -m pytest -q -n auto
+
+# the suite without the slow end-to-end cases, for quick checks while working
+test-fast: install
+	$(BIN)/python -m pytest -q -n auto -m "not slow"
 
 # The report's test opens report.html in headless Chromium (Debian package chromium).
 browser:
