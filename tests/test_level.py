@@ -87,10 +87,27 @@ def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     assert data["T_initial"] is None
 
 
-def test_level_data_are_not_levelled(suburb):
-    # aerial-triangulation tie points are level already: nothing is turned
+def test_level_data_are_registered_as_they_are(suburb):
+    # aerial-triangulation tie points are level already: the points as they are win, the points
+    # turned over are tried too (a model may be upside down and level) and rejected
     result = register(suburb.moving, suburb.lidar.xyz, fine="none")
-    assert result.levelling is None and result.confident
+    assert result.confident
+    assert result.levelling["chosen"] == "as is" and result.levelling["tried"] == 2
+    assert result.levelling["confident_answers"] == 1
+    assert _rms(result.T_ref_mov, suburb.T_ref_mov, suburb.moving) < 10.0  # metres, coarse only
+
+
+@pytest.mark.parametrize("cameras", [True, False])
+def test_a_model_upside_down_and_level_is_turned_over(suburb, tmp_path, cameras):
+    # COLMAP's frame follows a camera's axes: a nadir block comes out upside down, within a few
+    # degrees of level. The cameras' viewing direction says so; without them the reference does
+    model = oriented_model(suburb, (177.0, 2.0, 30.0))
+    folder = model.write_colmap(tmp_path / "sparse", cameras=cameras)
+    result = register(folder, suburb.lidar.xyz, fine="none")
+    assert result.confident, result.reasons
+    assert result.levelling["source"] == ("cameras" if cameras else "points")
+    assert result.levelling["chosen"] == ("up" if cameras else "down")
+    assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 10.0  # metres, coarse only
 
 
 def test_level_mountain_blocks_stay_level():
@@ -105,4 +122,5 @@ def test_level_mountain_blocks_stay_level():
     assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 15  # the premise
     result = register(scene.moving, scene.lidar.xyz, fine="none")
     assert result.confident and result.levelling["tried"] == 3  # as it is, up, down
+    assert result.levelling["chosen"] == "as is"
     assert _rms(result.T_ref_mov, scene.T_ref_mov, scene.moving) < 5.0  # metres, coarse only

@@ -81,7 +81,7 @@ def test_reference_as_geotiff_dsm(tmp_path):
 
 
 def test_json_writes_numbers_that_are_not_finite_as_null():
-    from tiereg.pipeline import dumps_json
+    from tiereg._json import dumps_json
 
     data = {"ratio": float("inf"), "row": [1.5, float("nan")], "n": np.float64(-np.inf),
             "deep": {"ok": np.float32(2.5), "flag": True, "count": 3}, "pair": (0.5, np.inf)}

@@ -247,7 +247,7 @@ def farmland():
 def test_what_stands_on_flat_ground_decides_where_the_heights_cannot(farmland):
     import math
 
-    from tiereg.coarse.scoring import HEIGHTS, OBJECTS
+    from tiereg.coarse.scoring import HEIGHTS, OBJECTS, ScaleRange
     from tiereg.coarse.search import search
     from tiereg.grid import cell_size_from_density
     from tiereg.transform import Transform
@@ -261,7 +261,7 @@ def test_what_stands_on_flat_ground_decides_where_the_heights_cannot(farmland):
     found = {}
     for channel in (HEIGHTS, OBJECTS):  # scales within 1.5x of the truth keep the test short
         f = search(moving, ref, tie_cell=tie_cell, channel=channel,
-                   sigma_range=(true.scale / 1.5, true.scale * 1.5))
+                   scales=ScaleRange(true.scale / 1.5, true.scale * 1.5))
         found[channel.name] = (f.best, f.sweep_best.score / f.runner_up.score)
     best, ratio = found["objects"]
     assert abs((math.degrees(best.kappa - true.kappa) + 180) % 360 - 180) < 0.5  # degrees

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .fine.lsm import lidar_near
 from .reference import Reference
 from .robust import nmad
 from .surface import fit_planes, plane_heights
@@ -61,7 +60,7 @@ def select_control_points(
     """
     spacing = reference.spacing
     radius = 3.0 * spacing
-    lidar = lidar_near(reference, xyz_local[:, :2], radius)
+    lidar = reference.points_near(xyz_local[:, :2], radius)
     if len(lidar) < PATCH_POINTS:
         return ()
     tree = cKDTree(lidar[:, :2])

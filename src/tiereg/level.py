@@ -12,9 +12,11 @@ so the model is first turned so that its vertical points up:
   reference confirms wins. A block about as thick as it is wide has no dominant plane: the
   vertical is then ambiguous and the result says so.
 
-Level data (tie points of an aerial triangulation) are not touched: points-only levelling acts
-only when the dominant plane is tilted by more than :data:`MIN_TILT_DEG` (terrain slopes are a
-few degrees; an unreferenced model is off by tens).
+From the cameras, a model is turned whenever its up is more than :data:`MIN_CAMERA_TILT_DEG`
+off +z, upside down included. From the points alone, both senses of the dominant plane's
+normal are tried whatever its tilt (a model may be upside down and still level to a few
+degrees), and up to :data:`MAX_GROUND_TILT_DEG` the points as they are too (level data, tie
+points of an aerial triangulation, on sloping ground); the reference decides.
 """
 
 from __future__ import annotations
@@ -26,7 +28,12 @@ import numpy as np
 
 from .transform import Transform
 
-MIN_TILT_DEG = 15.0  # points-only: a dominant plane tilted less than this is taken as level
+# points-only: the points as they are, with a dominant plane tilted less than this, are compared
+# as level data (no plane fitted to their heights: terrain slopes are a few degrees)
+MIN_TILT_DEG = 15.0
+# cameras: a model whose up is less than this off +z is used as it is (the fine stage's tilts
+# take up the rest)
+MIN_CAMERA_TILT_DEG = 0.5
 # points-only: a dominant plane tilted more than this is not the ground's own slope (high
 # mountains tilt it by 15-20 deg), so the model as it is cannot be level and is not tried
 MAX_GROUND_TILT_DEG = 40.0
@@ -45,8 +52,14 @@ class Vertical:
 
     @property
     def tilt_deg(self) -> float:
-        """Angle between the model's up and its z axis."""
+        """Angle between the model's up (either sense) and its z axis: 0 to 90 degrees."""
         return math.degrees(math.acos(float(np.clip(abs(self.up[2]), 0.0, 1.0))))
+
+    @property
+    def off_up_deg(self) -> float:
+        """Angle between the model's up, in its sense, and its +z axis: 0 to 180 degrees (180:
+        upside down)."""
+        return math.degrees(math.acos(float(np.clip(self.up[2], -1.0, 1.0))))
 
     @property
     def ambiguous(self) -> bool:
@@ -92,6 +105,37 @@ def vertical_from_cameras(centres: np.ndarray, directions: np.ndarray,
     spread = np.sqrt(np.maximum(_principal(np.asarray(points, dtype=np.float64))[0], 0.0))
     return Vertical(tuple(float(v) for v in up), "cameras", True,
                     float(spread[0] / max(spread[1], 1e-300)))
+
+
+@dataclass(frozen=True)
+class StartingPose:
+    """A way to turn a model before the level problem: the rotation, whether its points may
+    still lean (levelled by a plane of their own, not by cameras), and a name for the result."""
+
+    T: Transform
+    free_tilt: bool
+    name: str  # "as is", "up" (levelled by the vertical found), "down" (by its opposite)
+
+
+def starting_poses(vertical: Vertical, centre: np.ndarray) -> list[StartingPose]:
+    """The orientations to try for a model whose vertical is ``vertical`` (turned about
+    ``centre``), most likely first.
+
+    From cameras: the one their viewing direction gives. From points: both senses of the
+    dominant plane's normal, and the points as they are where that plane is no steeper than any
+    ground (:data:`MAX_GROUND_TILT_DEG`); nearly level points (:data:`MIN_TILT_DEG`) are not
+    levelled by their plane in the same sense (terrain slopes would tilt them), only turned over.
+    """
+    up = np.asarray(vertical.up, dtype=np.float64)
+    if vertical.source == "cameras":
+        return [StartingPose(levelling(up, centre), False, "up")]
+    poses = []
+    if vertical.tilt_deg <= MAX_GROUND_TILT_DEG:
+        poses.append(StartingPose(Transform.identity(), vertical.tilt_deg > MIN_TILT_DEG, "as is"))
+    if vertical.tilt_deg > MIN_TILT_DEG:
+        poses.append(StartingPose(levelling(up, centre), True, "up"))
+    poses.append(StartingPose(levelling(-up, centre), True, "down"))
+    return poses
 
 
 def levelling(up: tuple[float, float, float] | np.ndarray, centre: np.ndarray) -> Transform:

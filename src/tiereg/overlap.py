@@ -112,7 +112,7 @@ def write_overlap(result: OverlapResult, out_dir) -> tuple[str, ...]:
     except OSError as exc:
         raise OutputError(f"{out}: cannot create the folder ({exc.strerror}); give a folder "
                           "you can write to") from None
-    from .pipeline import dumps_json
+    from ._json import dumps_json
 
     write_text_atomic(out / "overlap.json", dumps_json(result.to_dict()) + "\n")
     write_text_atomic(out / "overlap.geojson", result.to_geojson() + "\n")

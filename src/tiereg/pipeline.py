@@ -14,29 +14,29 @@ from typing import Any
 
 import numpy as np
 
+from ._json import dumps_json
 from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
+from .coarse.scoring import tie_cell_for
 from .coarse.similarity import register_similarity
 from .crs import crs_label, crs_units, is_geographic
 from .errors import InputError
 from .fine import METHODS as FINE_METHODS
 from .fine import FineResult, register_fine
-from .grid import cell_size_from_density
 from .io import PointSource, open_points
 from .io.base import ArraySource
 from .level import (
-    MAX_GROUND_TILT_DEG,
-    MIN_TILT_DEG,
+    MIN_CAMERA_TILT_DEG,
     Vertical,
-    levelling,
+    starting_poses,
     vertical_from_cameras,
     vertical_from_points,
 )
 from .points import PointSet, gross_outliers, validate_points
 from .progress import ProgressFactory, no_progress
 from .quality import HeightStats, PointResiduals
-from .reference import Reference, base_cell_for, point_spacing, prepare_reference
+from .reference import Reference, prepare_reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
 
@@ -144,36 +144,6 @@ class RegistrationResult:
         return dumps_json(self.to_dict())
 
 
-def dumps_json(data: dict[str, Any]) -> str:
-    """Indented JSON with lists of numbers (matrix rows, vectors) kept on one line. JSON has no
-    infinity or NaN: a number that is not finite (a ratio over nothing) is written as null."""
-    import json
-    import re
-
-    text = json.dumps(_finite_or_null(data), indent=2, allow_nan=False, default=_json_default)
-    number_list = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
-    return number_list.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(","))
-                           + "]", text)
-
-
-def _finite_or_null(o: object) -> object:
-    if isinstance(o, dict):
-        return {k: _finite_or_null(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite_or_null(v) for v in o]
-    if isinstance(o, (float, np.floating)):
-        return float(o) if np.isfinite(o) else None
-    return o
-
-
-def _json_default(o: object) -> object:
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")
-
-
 def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> PointSource:
     if isinstance(points, PointSource):
         return points
@@ -224,32 +194,24 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
     if mode == "cameras" and vertical is None:
         raise InputError(f"{source.info.path}: no cameras that look down in this model; use "
                          "--level points or give a COLMAP/Bundler model with its images")
-    if vertical is not None:
-        return vertical if vertical.tilt_deg > 0.5 else None
-    if mode in ("auto", "points"):
-        vertical = vertical_from_points(xyz)
-        if mode == "points" or vertical.tilt_deg > MIN_TILT_DEG:
-            return vertical
+    if vertical is not None:  # the sign of the viewing direction decides, upside down included
+        return vertical if vertical.off_up_deg > MIN_CAMERA_TILT_DEG else None
+    if mode in ("auto", "points"):  # both senses, whatever the tilt: the reference decides
+        return vertical_from_points(xyz)
     return None
 
 
 def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndarray,
                        moving: object, reference: object, **options: Any) -> RegistrationResult:
-    """Level the model by ``vertical`` (both signs when it is unknown; from points, the model as
-    it is too, unless its dominant plane is steeper than any ground) and register it; the answer
-    whose registration is confident (then the more confident) wins, and two confident answers
-    that disagree are no answer. ``centre``: the model's centroid, which the levelling turns
-    about."""
-    ups = [np.asarray(vertical.up)] + ([] if vertical.sign_known else [-np.asarray(vertical.up)])
-    levels = [levelling(up, centre) for up in ups]
-    if vertical.source == "points" and vertical.tilt_deg <= MAX_GROUND_TILT_DEG:
-        # steep ground tilts its own dominant plane (by 15-20 degrees in high mountains): the
-        # model as it is may be level already
-        levels.insert(0, Transform.identity())
+    """Register the model from each of the orientations ``vertical`` proposes
+    (:func:`~tiereg.level.starting_poses`); the answer whose registration is confident (then the
+    more confident) wins, and two confident answers that disagree are no answer. ``centre``: the
+    model's centroid, which the levelling turns about."""
+    poses = starting_poses(vertical, centre)
     results: list[RegistrationResult] = []
-    for T_level in levels:
-        r = register(mov_src, results[0].reference if results else reference, initial=T_level,
-                     level="none", free_tilt=vertical.source == "points", **options)
+    for pose in poses:
+        r = register(mov_src, results[0].reference if results else reference, initial=pose.T,
+                     level="none", free_tilt=pose.free_tilt, **options)
         results.append(replace(r, T_initial=None))
     best = max(results, key=lambda r: (r.confident, r.confidence))
     reasons = list(best.reasons)
@@ -258,7 +220,8 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
                        "a model with its cameras, or a starting pose with --initial")
     info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
             "sign_known": vertical.sign_known, "flatness": vertical.flatness,
-            "tried": len(results), "confident_answers": sum(r.confident for r in results)}
+            "tried": len(results), "confident_answers": sum(r.confident for r in results),
+            "chosen": poses[results.index(best)].name}
     rivals = [r for r in results if r.confident and r is not best
               and not _same_answer(r, best, centre[None])]
     if rivals:
@@ -296,6 +259,23 @@ def height_differences(xyz_ref: np.ndarray, surface: SurfaceSampler | LocalSurfa
         return surface.heights(xyz_ref[:, 0], xyz_ref[:, 1]) - xyz_ref[:, 2]
     z, ok = surface.sample(xyz_ref[:, 0], xyz_ref[:, 1])
     return np.where(ok, z - xyz_ref[:, 2], np.nan)
+
+
+def _translation_grid(ref: Reference, cell_size: float, moving: np.ndarray):
+    """The reference grid a translation-only search correlates (``cell_size``: reference units),
+    refused where it or the tie points' grid on its lattice would exceed
+    :data:`~tiereg.coarse.scoring.MAX_REFERENCE_CELLS` or
+    :data:`~tiereg.coarse.scoring.MAX_TIE_SIDE` cells a side."""
+    from .coarse.scoring import MAX_REFERENCE_CELLS, MAX_TIE_SIDE
+
+    (x0, y0, x1, y1) = ref.base.spec.bounds
+    extent = np.ptp(moving[:, :2], axis=0).max()
+    least = max(max(x1 - x0, y1 - y0) / MAX_REFERENCE_CELLS, extent / MAX_TIE_SIDE)
+    if cell_size < least:
+        raise InputError(f"cell_size {cell_size:g} is too fine for a translation-only search of "
+                         f"this reference and block; give cell_size of at least {least:.3g} "
+                         "(reference units), or let the coarse stage find the scale too")
+    return ref.grid(cell_size)
 
 
 def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
@@ -387,11 +367,10 @@ def register(
     T_start = Transform.identity() if initial is None else initial
     o_mov = np.round(mov_xyz[keep].mean(axis=0))
     mov_local = mov_xyz - o_mov
-    tie_cell = cell_size_from_density(mov_local[keep])  # model units
-    if cell_size is None:
-        cell_size = tie_cell
-    elif not (cell_size > 0 and math.isfinite(cell_size)):
-        raise InputError(f"--cell-size must be a positive number, got {cell_size}")
+    # the tie points' own grid cell, in their own units (the reference's, after ``initial``)
+    tie_cell = tie_cell_for(mov_local[keep])
+    if cell_size is not None and not (cell_size > 0 and math.isfinite(cell_size)):
+        raise InputError(f"cell_size must be a positive number, got {cell_size}")
 
     reference_seconds = 0.0
     if isinstance(reference, Reference):
@@ -401,40 +380,39 @@ def register(
         if ref_src.info.count == 0:
             raise InputError(f"{ref_src.info.path}: the reference point set is empty; "
                              "give a file with points in it")
-        # auto and search try scales down to a quarter: the base serves the finest of them
-        finest = cell_size if coarse in ("pomf", "none") else cell_size / 4
         t_ref = time.perf_counter()
-        ref = prepare_reference(ref_src, base_cell=base_cell_for(finest, point_spacing(ref_src)),
-                                progress=progress)
+        ref = prepare_reference(ref_src, progress=progress)  # its base cell from its own data
         reference_seconds = time.perf_counter() - t_ref
         ref = replace(ref, source_args=_path_args(reference))
     ref_src, o_ref = ref.source, ref.origin
-    grid = ref.grid(cell_size)
-    cell_size = grid.spec.cell_size
-    fine_grid = ref.base if ref.base_cell < cell_size / 1.5 else None
-    sampler = SurfaceSampler.from_grid(fine_grid or grid)
-
     T_in = Transform.from_translation(o_ref).inverse  # reference -> local
     T_mov_local = Transform.from_translation(o_mov)  # local moving -> moving
-    before = _height_stats((T_in @ T_mov_local).apply(mov_local), sampler)
 
     coarse_result: CoarseResult | None = None
     reasons: list[str] = []
     if coarse == "none":
         T_local = T_in @ T_mov_local
+        cell_size = cell_size or tie_cell  # the moving points are in the reference frame
+        before = _height_stats(T_local.apply(mov_local), ref.surface())
         confident, confidence = before.overlap_fraction > 0.3, 0.0
         reasons.append("no coarse registration was asked for (--coarse none)")
     else:
-        if coarse == "pomf":
-            coarse_result = register_translation(mov_local[keep], grid, reference_fine=fine_grid)
+        if coarse == "pomf":  # level data at the reference's scale: a cell in its units
+            grid = _translation_grid(ref, cell_size or tie_cell, mov_local[keep])
+            coarse_result = register_translation(mov_local[keep], grid,
+                                                 reference_fine=ref.base)
         else:  # search, auto
             coarse_result = register_similarity(mov_local[keep], ref, tie_cell=tie_cell,
                                                 method=coarse, free_tilt=free_tilt)
         T_local = coarse_result.T_ref_mov
+        # the registration's cell, in reference units: the tie cell at the scale found
+        cell_size = cell_size or coarse_result.cell_size
+        before = _height_stats((T_in @ T_mov_local).apply(mov_local), ref.surface())
         coarse_result = replace(coarse_result,
                                 T_ref_mov=_to_world(T_local, o_ref, o_mov) @ T_start)
         confident, confidence = coarse_result.confident, coarse_result.confidence
         reasons.extend(coarse_result.reasons)
+    sampler = ref.surface()
 
     T_before_fine = T_local
     fine_result: FineResult | None = None

@@ -24,9 +24,15 @@ from .grid import Grid, GridAccumulator, GridSpec
 from .io import PointSource
 from .io.las import LasSource
 from .progress import ProgressFactory, no_progress
+from .surface import SurfaceSampler
 
-MAX_BASE_CELLS = 40_000_000
-FINE_FACTOR = 8  # the base cell is at most this much finer than a coarse cell
+# the base grid: about this many reference points per cell on average (most cells hold one), and
+# at most MAX_BASE_SIDE cells along its longer side (1 M cells, 16 MB), whatever the lidar:
+# memory follows this bound, never the point count. The coarse stage's grids are at most 320
+# cells a side, so a base of 1,024 still divides them in three or more; its surface is then the
+# tie cell over 8 or finer (5 m for 40 m cells: what the coarse and fine benchmarks measured)
+BASE_SPACINGS = 1.25
+MAX_BASE_SIDE = 1024
 # ASPRS classes of points that are not the surface: low point (noise) and high noise; a few
 # birds or multipath returns hundreds of metres off would pull whole cells of the grids
 NOISE_CLASSES = (7, 18)
@@ -41,6 +47,7 @@ class Reference:
     base: Grid = field(repr=False)
     first_returns_only: bool
     _cache: dict[int, Grid] = field(default_factory=dict, repr=False, compare=False)
+    _surface: list[SurfaceSampler] = field(default_factory=list, repr=False, compare=False)
     # the coarse stage's threads ask for grids side by side
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
     source_args: tuple[str, ...] = ()  # the paths it was read from, when known
@@ -68,6 +75,39 @@ class Reference:
                 wanted = tuple({*stats, *(cached.stats if cached else ())})
                 self._cache[k] = aggregate(self.base, k, stats=wanted)
             return self._cache[k]
+
+    def surface(self) -> SurfaceSampler:
+        """The finest surface, the base grid's, bilinear: what the continuous fits, the fine
+        stage's vertical model and the height statistics sample (made once, then shared)."""
+        with self._lock:
+            if not self._surface:
+                self._surface.append(SurfaceSampler.from_grid(self.base))
+            return self._surface[0]
+
+    def points_near(self, xy: np.ndarray, radius: float) -> np.ndarray:
+        """The reference points (local coordinates) within about ``radius`` of any of ``xy``
+        (local), those the base grid was made from.
+
+        One streaming pass; a mask of cells of size ``radius`` marks the neighbourhoods, so memory
+        follows the number of positions, not the lidar.
+        """
+        lo = xy.min(axis=0) - 2 * radius
+        shape = (np.ceil((xy.max(axis=0) + 2 * radius - lo) / radius)).astype(int) + 1
+        near = np.zeros((shape[1], shape[0]), bool)  # rows: y, cols: x
+        ix = ((xy - lo) / radius).astype(int)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                near[ix[:, 1] + dy, ix[:, 0] + dx] = True
+        kept = []
+        for chunk in self.local_chunks():
+            jx = np.floor((chunk[:, 0] - lo[0]) / radius).astype(np.int64)
+            jy = np.floor((chunk[:, 1] - lo[1]) / radius).astype(np.int64)
+            inside = (jx >= 0) & (jx < shape[0]) & (jy >= 0) & (jy < shape[1])
+            sel = np.flatnonzero(inside)
+            sel = sel[near[jy[sel], jx[sel]]]
+            if len(sel):
+                kept.append(chunk[sel])
+        return np.concatenate(kept) if kept else np.empty((0, 3))
 
     def local_chunks(self) -> Iterator[np.ndarray]:
         """The reference points again, chunk by chunk, in local coordinates: those the base grid
@@ -134,21 +174,26 @@ def point_spacing(source: PointSource) -> float:
     return math.sqrt(area / max(source.info.count, 1))
 
 
-def base_cell_for(cell_size: float, spacing: float) -> float:
-    """A base cell that divides ``cell_size``: ``cell_size / k`` with ``k <= 8``, not finer than
-    the reference's point spacing (cells would be mostly empty)."""
-    k = max(1, min(FINE_FACTOR, int(cell_size / max(spacing, 1e-12))))
-    return cell_size / k
+def base_cell_for(source: PointSource) -> float:
+    """The base cell of a reference, from the reference alone: :data:`BASE_SPACINGS` point
+    spacings, or coarser where that would make more than :data:`MAX_BASE_SIDE` cells along the
+    longer side. The moving points do not enter: their units are unknown until registered."""
+    assert source.info.bounds is not None
+    (x0, y0, _), (x1, y1, _) = source.info.bounds
+    extent = max(x1 - x0, y1 - y0, 0.0)
+    cell = max(BASE_SPACINGS * point_spacing(source), extent / MAX_BASE_SIDE)
+    return cell if cell > 0 and math.isfinite(cell) else 1.0
 
 
 def prepare_reference(
     source: PointSource,
     *,
-    base_cell: float,
+    base_cell: float | None = None,
     first_returns: bool = True,
     progress: ProgressFactory | None = None,
 ) -> Reference:
-    """Grid ``source`` once at ``base_cell`` (one streaming pass; memory follows the grid)."""
+    """Grid ``source`` once at ``base_cell`` (default :func:`base_cell_for`; one streaming pass,
+    memory follows the grid, at most :data:`MAX_BASE_SIDE` cells a side)."""
     progress = progress or no_progress
     info = source.info
     if info.count == 0:
@@ -161,9 +206,11 @@ def prepare_reference(
                          "corrupt - re-export it")
     origin = np.round((lo + hi) / 2)
     lo, hi = lo - origin, hi - origin
-    cells = ((hi[0] - lo[0]) / base_cell + 2) * ((hi[1] - lo[1]) / base_cell + 2)
-    if cells > MAX_BASE_CELLS:  # very large references: a coarser base, still one pass
-        base_cell *= math.ceil(math.sqrt(cells / MAX_BASE_CELLS))
+    if base_cell is None:
+        base_cell = base_cell_for(source)
+    side = max(hi[0] - lo[0], hi[1] - lo[1]) / base_cell + 2
+    if side > MAX_BASE_SIDE:  # a finer base was asked for than memory allows: still one pass
+        base_cell *= math.ceil(side / MAX_BASE_SIDE)
     spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], base_cell)
     use_first = first_returns and isinstance(source, LasSource)
     grid = _grid(source, spec, origin, use_first, progress)

@@ -33,7 +33,7 @@ from ..grid import GridSpec, rasterize
 from ..reference import Reference
 from .fourier_mellin import _taper
 from .preprocess import Prepared, prepare
-from .scoring import Scorer
+from .scoring import ScaleRange, Scorer
 from .search import HeightCheck, SearchResult, verify_candidates
 
 REFERENCE_CELLS = 256  # per side of the reference grid whose spectrum is taken
@@ -84,7 +84,7 @@ def moments_search(
     ref: Reference,
     *,
     tie_cell: float,
-    sigma_range: tuple[float, float] = (0.25, 4.0),
+    scales: ScaleRange | None = None,
     heights: HeightCheck | None = None,
 ) -> tuple[SearchResult, dict]:
     """Candidates from the spectra's orientations and a scale scan, verified and refined;
@@ -102,13 +102,14 @@ def moments_search(
     kappa0 = o_ref.phi - o_mov.phi
     kappas = [kappa0 + turn + math.radians(d) for turn in (0.0, math.pi)
               for d in KAPPA_OFFSETS_DEG]
-    n_sigma = math.ceil(math.log(sigma_range[1] / sigma_range[0]) / math.log(SCALE_RATIO))
-    sigmas = sigma_range[0] * SCALE_RATIO ** np.arange(n_sigma + 1)
+    scales = scales or ScaleRange.of(moving, ref, tie_cell)
+    sigmas = scales.lattice(SCALE_RATIO, level=2)
     scorer = Scorer(moving, ref, tie_cell, 2)
     hyps = [h for k in kappas for s in sigmas if (h := scorer.score(k, float(s))) is not None]
     found = verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=4,
                               log_sigma=math.log(SCALE_RATIO),
-                              n_tried=len(kappas) * len(sigmas), heights=heights)
+                              n_tried=len(kappas) * len(sigmas), scales=scales,
+                              heights=heights)
     info = {"heading_from_moments_deg": math.degrees(kappa0) % 180.0,
             "anisotropy_moving": o_mov.anisotropy, "anisotropy_reference": o_ref.anisotropy}
     return found, info

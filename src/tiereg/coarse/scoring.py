@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..grid import Grid, GridSpec, mask_bounds, rasterize
+from ..grid import Grid, GridSpec, cell_size_from_density, mask_bounds, nice_size, rasterize
 from ..reference import Reference
 from ..transform import Transform, rotation_matrix
 from .correlation import (
@@ -42,9 +42,54 @@ BANDPASS_TIE_CELLS = 6.0  # band-pass width on the ground, in tie cells, at ever
 MAX_REFERENCE_CELLS = 320  # per side: finer hypotheses (tiny blocks) are not tried
 MIN_SUPPORT_CELLS = 50  # correlations over fewer cells are high by chance too often
 MAX_TIE_CELLS = 4_000_000  # a tie-point canvas larger than this is not tried
+# the tie points' own grid: at most this many cells along the block's longer side (a dense
+# model is gridded coarser, as if thinned; blocks of up to 20,000 tie points stay below it)
+MAX_TIE_SIDE = 256
+SCALE_STEP = 2 ** (1 / 5)  # the sweep's scale lattice: 2^(k/5), k integer (0.25 and 4 on it)
 CANVAS_MARGIN_CELLS = 1  # room around a tie-point grid (it ends at its points' bounds)
 WINDOW_CELLS = 8  # local refinement: shifts within this many cells of the candidate's
 STACK_CELLS = 200_000  # correlation cells of a stack (1.6 MB an array: measured fastest, in cache)
+
+
+def tie_cell_for(moving: np.ndarray) -> float:
+    """The tie points' grid cell (model units): from their density
+    (:func:`~tiereg.grid.cell_size_from_density`), coarser where the block would span more than
+    about :data:`MAX_TIE_SIDE` cells."""
+    xy = moving[:, :2]
+    extent = float(np.max(xy.max(axis=0) - xy.min(axis=0)))
+    cell = cell_size_from_density(xy)
+    return cell if extent / cell <= MAX_TIE_SIDE else nice_size(extent / MAX_TIE_SIDE)
+
+
+@dataclass(frozen=True)
+class ScaleRange:
+    """The scales (reference units per model unit) at which a block can be found in a reference
+    at all, whatever units either is in (:meth:`of`)."""
+
+    lowest: float  # finer, the tie cell grids the reference at over MAX_REFERENCE_CELLS a side
+    highest: float  # coarser, MIN_OVERLAP of the block would be more than the whole reference
+
+    @classmethod
+    def of(cls, moving: np.ndarray, ref: Reference, tie_cell: float) -> ScaleRange:
+        """From the data alone: the block's extent and tie cell (model units) against the
+        reference's extent (its units). A model in any gauge (1e-3 to 1e3 reference units per
+        model unit and beyond) lands inside it."""
+        (x0, y0, x1, y1) = ref.base.spec.bounds
+        lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
+        block_area = max(float(np.prod(hi - lo)), 1e-300)
+        return cls(max(x1 - x0, y1 - y0) / (MAX_REFERENCE_CELLS * tie_cell),
+                   math.sqrt((x1 - x0) * (y1 - y0) / (MIN_OVERLAP * block_area)))
+
+    def lattice(self, step: float, *, level: int = 1) -> np.ndarray:
+        """The scales ``step^k`` (k integer) in the range; at a search ``level``, down to the
+        finest that level can still score (its cells are ``level`` tie cells)."""
+        lo = math.ceil(math.log(self.lowest / level) / math.log(step) - 1e-9)
+        hi = math.floor(math.log(self.highest) / math.log(step) + 1e-9)
+        return step ** np.arange(lo, hi + 1, dtype=np.float64)
+
+    def at_edge(self, sigma: float) -> bool:
+        """Within a sweep step (:data:`SCALE_STEP`) of either end: the truth may lie beyond."""
+        return sigma < self.lowest * SCALE_STEP or sigma > self.highest / SCALE_STEP
 
 
 @dataclass(frozen=True)

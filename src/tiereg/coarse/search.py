@@ -21,7 +21,7 @@ from ..parallel import map_threads
 from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
-from .scoring import HEIGHTS, MIN_OVERLAP, Channel, Hypothesis, Scorer
+from .scoring import HEIGHTS, MIN_OVERLAP, SCALE_STEP, Channel, Hypothesis, ScaleRange, Scorer
 
 SWEEP_MIN_CELLS = 1000  # the block's cells at the sweep's level 2, else the sweep is at level 1
 KEEP = 6  # distinct candidates refined: the best correlations (and on small blocks as many of
@@ -38,6 +38,7 @@ class SearchResult:
     n_hypotheses: int
     # the best correlation's answer, where the heights chose another (:func:`choose`)
     alternative: SearchResult | None = None
+    scales: ScaleRange | None = None  # the scales searched
 
 
 def small_block(moving: np.ndarray, tie_cell: float) -> bool:
@@ -103,6 +104,7 @@ def choose(
     tie_cell: float,
     heights: HeightCheck | None,
     n_hypotheses: int,
+    scales: ScaleRange | None = None,
 ) -> SearchResult:
     """The answer among refined candidates ``pairs`` of ``(refined, the hypothesis it grew
     from)``, and its rival: the best of the ``ranked`` hypotheses genuinely different from it.
@@ -126,7 +128,8 @@ def choose(
             parent, kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
             shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * parent.sigma)), None)
         refined = tuple(sorted((r for r, _ in pairs), key=lambda h: -h.score))
-        return SearchResult(best, rival, parent, (tuple(top), refined), n_hypotheses)
+        return SearchResult(best, rival, parent, (tuple(top), refined), n_hypotheses,
+                            scales=scales)
 
     by_correlation = answer(*max(pairs, key=lambda rp: rp[0].score), pairs)
     if heights is None:
@@ -166,9 +169,9 @@ def search(
     ref: Reference,
     *,
     tie_cell: float,
-    sigma_range: tuple[float, float] = (0.25, 4.0),
+    scales: ScaleRange | None = None,
     kappa_step_deg: float = 7.5,
-    sigma_ratio: float = 2 ** (1 / 5),
+    sigma_ratio: float = SCALE_STEP,
     keep: int = KEEP,
     seeds: list[tuple[float, float]] | None = None,
     channel: Channel = HEIGHTS,
@@ -177,9 +180,10 @@ def search(
 ) -> SearchResult:
     """Search heading and scale; ``moving`` is local (centred) model coordinates.
 
-    ``tie_cell`` is the tie-point grid cell in model units; ``sigma_range`` bounds the scale
-    (reference units per model unit). Scales at which the block could not overlap the reference
-    by :data:`~tiereg.coarse.scoring.MIN_OVERLAP` of its area are skipped. ``seeds`` are extra
+    ``tie_cell`` is the tie-point grid cell in model units; ``scales`` bounds the scale
+    (reference units per model unit; default: all at which the block can be found,
+    :class:`~tiereg.coarse.scoring.ScaleRange`), swept on the lattice ``sigma_ratio^k``.
+    ``seeds`` are extra
     ``(kappa, sigma)`` hypotheses, e.g. from a frequency-domain method, refined like the sweep's
     own candidates. ``channel``: what is correlated (:data:`~tiereg.coarse.scoring.HEIGHTS`,
     :data:`~tiereg.coarse.scoring.OBJECTS`). ``keep``: the distinct best-correlated hypotheses
@@ -190,17 +194,13 @@ def search(
     core).
     """
     n_hyp = 0
-    lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
-    block_area = float(np.prod(hi - lo))
     small = small_block(moving, tie_cell)
     sweep_level = channel.sweep_level or (1 if small else 2)
     heights = heights if small else None
     sweep_scorer = Scorer(moving, ref, tie_cell, sweep_level,
                           channel=replace(channel, tie_stat=channel.sweep_tie_stat))
-    (x0, y0, x1, y1) = ref.base.spec.bounds
-    sigma_max = min(sigma_range[1], math.sqrt((x1 - x0) * (y1 - y0) / (MIN_OVERLAP * block_area)))
-    n_sigma = max(0, int(math.ceil(math.log(sigma_max / sigma_range[0]) / math.log(sigma_ratio))))
-    sigmas = sigma_range[0] * sigma_ratio ** np.arange(n_sigma + 1)
+    scales = scales or ScaleRange.of(moving, ref, tie_cell)
+    sigmas = scales.lattice(sigma_ratio, level=sweep_level)
     kappas = np.radians(np.arange(0.0, 360.0, kappa_step_deg))
     by_sigma: dict[float, list[float]] = {float(sg): [float(k) for k in kappas] for sg in sigmas}
     for kappa, sigma in seeds or []:
@@ -227,7 +227,7 @@ def search(
     if not pairs:
         pairs = [(replace(top[0], level=1), top[0])]
     return choose(moving, ranked, top, pairs, tie_cell=tie_cell, heights=heights,
-                  n_hypotheses=n_hyp)
+                  n_hypotheses=n_hyp, scales=scales)
 
 
 def verify_candidates(
@@ -239,6 +239,7 @@ def verify_candidates(
     keep: int,
     log_sigma: float,
     n_tried: int,
+    scales: ScaleRange,
     heights: HeightCheck | None = None,
     workers: int | None = None,
 ) -> SearchResult:
@@ -254,7 +255,7 @@ def verify_candidates(
     pairs, n_refine = refine_candidates(moving, ref, top, tie_cell=tie_cell, workers=workers)
     return choose(moving, ranked, top, pairs or [(top[0], top[0])], tie_cell=tie_cell,
                   heights=heights if small_block(moving, tie_cell) else None,
-                  n_hypotheses=n_tried + n_refine)
+                  n_hypotheses=n_tried + n_refine, scales=scales)
 
 
 def refine_candidates(

@@ -34,7 +34,17 @@ from .moments import moments_search
 from .preprocess import prepare
 from .refine import SurfaceFit, fit_to_surface, fit_to_surface_many, height_offset
 from .result import Candidate, CoarseResult
-from .scoring import HEIGHTS, MIN_OVERLAP, OBJECTS, Channel, Hypothesis, Scorer
+from .scoring import (
+    HEIGHTS,
+    MAX_REFERENCE_CELLS,
+    MIN_OVERLAP,
+    OBJECTS,
+    SCALE_STEP,
+    Channel,
+    Hypothesis,
+    ScaleRange,
+    Scorer,
+)
 from .search import (
     HeightCheck,
     NoOverlap,
@@ -122,7 +132,7 @@ class FitCache:
 
     @classmethod
     def of(cls, reference: Reference) -> FitCache:
-        return cls(SurfaceSampler.from_grid(reference.base))
+        return cls(reference.surface())
 
     def fit(self, moving: np.ndarray, h: Hypothesis, cell: float) -> tuple[SurfaceFit, bool]:
         """:func:`refine_pose` of ``h``, or the fit of a hypothesis that starts the same; and
@@ -172,18 +182,22 @@ def frequency_search(
     *,
     tie_cell: float,
     method: str,
-    sigma_range: tuple[float, float] = (0.25, 4.0),
+    scales: ScaleRange | None = None,
     heights: HeightCheck | None = None,
 ) -> SearchResult:
     """Candidates from a Fourier-Mellin method on a 2x pyramid of reference cells, verified
     (``heights``: as in :func:`~tiereg.coarse.search.verify_candidates`).
 
-    At each level ``s`` the reference is gridded at ``tie_cell * s`` and the tie points at
-    ``tie_cell`` (model units), so the method only has to find the residual scale within the
-    level's octave. Each candidate is scored by masked NCC, the best distinct ones refined.
+    At each level ``s`` (the powers of two in ``scales``, default
+    :class:`~tiereg.coarse.scoring.ScaleRange`) the reference is gridded at ``tie_cell * s`` and
+    the tie points at ``tie_cell`` (model units), so the method only has to find the residual
+    scale within the level's octave. Each candidate is scored by masked NCC, the best distinct
+    ones refined. Levels that would grid the reference finer than
+    :data:`~tiereg.coarse.scoring.MAX_REFERENCE_CELLS` a side are not tried: no transform is
+    larger than twice that (and the tie grid's :data:`~tiereg.coarse.scoring.MAX_TIE_SIDE`).
     """
     name, robust = method.removesuffix("-classic"), not method.endswith("-classic")
-    n_levels = int(math.ceil(math.log2(sigma_range[1] / sigma_range[0]))) + 1
+    scales = scales or ScaleRange.of(moving, ref, tie_cell)
     scorer = Scorer(moving, ref, tie_cell, 2)
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
     spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], tie_cell)
@@ -191,8 +205,9 @@ def frequency_search(
     mov = prepare(mgrid["median"], mgrid.mask,
                   bandpass_sigma_cells=6.0 if robust else 0.0)
 
-    def level_candidates(level: int) -> list[tuple[float, float]]:
-        s_level = sigma_range[0] * 2.0**level
+    def level_candidates(s_level: float) -> list[tuple[float, float]]:
+        if scorer.too_fine(s_level / 2):  # the grid at the level's cell: too many cells
+            return []
         grid = ref.grid(tie_cell * s_level)
         s_eff = grid.spec.cell_size / tie_cell  # the quantized cell's own scale
         rgrid = prepare(grid["mean"], grid.mask, bandpass_sigma_cells=6.0 if robust else 0.0)
@@ -201,15 +216,19 @@ def frequency_search(
         found = ((c.theta, c.scale * s_eff)
                  for c in rotation_scale_candidates(rgrid, mov, method=name, robust=robust))
         return [(theta, sigma) for theta, sigma in found
-                if sigma_range[0] / 1.5 <= sigma <= sigma_range[1] * 1.5]
+                if scales.lowest / 1.5 <= sigma <= scales.highest * 1.5]
 
-    tried = [c for level in map_threads(level_candidates, range(n_levels), workers=None)
-             for c in level]
+    # the powers of two from the one at or below the lowest scale to the one at or above the
+    # highest: each level's octave holds the candidates around it
+    levels = [2.0**k for k in range(math.floor(math.log2(scales.lowest)),
+                                    math.ceil(math.log2(scales.highest)) + 1)]
+    tried = [c for level in map_threads(level_candidates, levels, workers=None) for c in level]
     scorer.prepare_for(sigma for _, sigma in tried)
     scored = map_threads(lambda kappa_sigma: scorer.score(*kappa_sigma), tried, workers=None)
     hyps = [h for h in scored if h is not None]
     return verify_candidates(moving, ref, hyps, tie_cell=tie_cell, keep=6,
-                             log_sigma=math.log(1.1), n_tried=len(tried), heights=heights)
+                             log_sigma=math.log(1.1), n_tried=len(tried), scales=scales,
+                             heights=heights)
 
 
 def register_similarity(
@@ -217,7 +236,7 @@ def register_similarity(
     reference: Reference,
     *,
     tie_cell: float,
-    sigma_range: tuple[float, float] = (0.25, 4.0),
+    scales: ScaleRange | None = None,
     method: str = "search",
     seeds: list[tuple[float, float]] | None = None,
     fits: FitCache | None = None,
@@ -231,12 +250,15 @@ def register_similarity(
     :func:`~tiereg.coarse.search.small_block`, ``qafmt``, then the sweep seeded with its
     candidates unless its answer is confident and explains the heights; on a larger block the
     sweep).
+    ``scales``: the scales searched (reference units per model unit; default: every scale at
+    which the block can be found in the reference, :class:`~tiereg.coarse.scoring.ScaleRange`).
     ``free_tilt``: the block may lean by a degree or more (a model levelled from its own
     points), so its heights are compared after a fitted plane
     (:class:`~tiereg.coarse.search.HeightCheck`).
     """
     seeds = list(seeds or [])
     t0 = time.perf_counter()
+    scales = scales or ScaleRange.of(moving_xyz, reference, tie_cell)
     fits = FitCache.of(reference) if fits is None else fits  # the finest surface, for all
     heights = HeightCheck(fits.sampler, free_tilt=free_tilt)
     if method == "auto" and not small_block(moving_xyz, tie_cell):
@@ -244,13 +266,13 @@ def register_similarity(
         # (3,150 tie points) qafmt was confident in 4 of 95 cases, which the sweep also found,
         # its seeds changed no answer, and it cost about 0.9 s a case
         auto = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
-                                   sigma_range=sigma_range, method="search", fits=fits,
+                                   scales=scales, method="search", fits=fits,
                                    free_tilt=free_tilt)
         return replace(auto, method="auto", details={**auto.details, "decided_by": "search"})
     if method == "auto":  # frequency domain first; the exhaustive sweep when that is not enough
         try:
             quick = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method="qafmt",
-                                     sigma_range=sigma_range, heights=heights)
+                                     scales=scales, heights=heights)
         except NoOverlap:
             quick = None
         # the continuous fit is the dear part of judging: spared when the candidates' own
@@ -265,7 +287,7 @@ def register_similarity(
                                         "timings_s": _rounded(timings)})
         seeds = [] if quick is None else [(h.kappa, h.sigma) for lv in quick.levels for h in lv]
         full = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
-                                   sigma_range=sigma_range, method="search", seeds=seeds,
+                                   scales=scales, method="search", seeds=seeds,
                                    fits=fits, free_tilt=free_tilt)
         return replace(full, method="auto", seconds=time.perf_counter() - t0,
                        details={**full.details, "decided_by": "search", "timings_s": _rounded(
@@ -275,19 +297,17 @@ def register_similarity(
     try:
         if method in FREQUENCY_METHODS:
             found = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method=method,
-                                     sigma_range=sigma_range, heights=heights)
+                                     scales=scales, heights=heights)
         elif method == "moments":
             found, extra = moments_search(moving_xyz, reference, tie_cell=tie_cell,
-                                          sigma_range=sigma_range, heights=heights)
+                                          scales=scales, heights=heights)
         else:
             # level, unscaled data are common: the identity is always among the hypotheses
-            found = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
+            found = search(moving_xyz, reference, tie_cell=tie_cell, scales=scales,
                            seeds=[(0.0, 1.0), *seeds], heights=heights)
     except NoOverlap:
         return CoarseResult(Transform.identity(), method, False, 0.0, tie_cell, 0.0, 1.0, 0.0,
-                            0.0, (), ("no heading and scale in the searched range makes the tie "
-                                      f"points overlap the reference by {MIN_OVERLAP:.0%}",),
-                            time.perf_counter() - t0)
+                            0.0, (), (no_overlap_reason(scales),), time.perf_counter() - t0)
     timings[method] = time.perf_counter() - t0
     options = {"method": method, "tie_cell": tie_cell, "extra": extra, "fits": fits}
     # where the checks that need no fit already rule out a confident answer from the heights,
@@ -301,7 +321,7 @@ def register_similarity(
         t_objects = time.perf_counter()
         # the heights did not decide: what stands on the ground may (flat farmland)
         try:
-            objects = search(moving_xyz, reference, tie_cell=tie_cell, sigma_range=sigma_range,
+            objects = search(moving_xyz, reference, tie_cell=tie_cell, scales=scales,
                              seeds=[(0.0, 1.0), *seeds], channel=OBJECTS, heights=heights)
         except NoOverlap:
             objects = None
@@ -320,6 +340,28 @@ def register_similarity(
                 **other.details, "confident": other.confident, "reasons": list(other.reasons)}})
     return replace(result, seconds=time.perf_counter() - t0,
                    details={**result.details, "timings_s": _rounded(timings)})
+
+
+def edge_reason(scales: ScaleRange, scale: float) -> str:
+    """Why an answer at the edge of the scales searched is not trusted, and what to do."""
+    if scale < scales.lowest * SCALE_STEP:
+        return (f"the scale found ({scale:.4g} reference units per model unit) is the smallest "
+                "at which this block can be told apart in this reference: the block may be "
+                "smaller still; crop the reference to the block's surroundings")
+    return (f"the scale found ({scale:.4g} reference units per model unit) is the largest at "
+            f"which {MIN_OVERLAP:.0%} of the block still lies on the reference: the block may "
+            "overlap it less than that")
+
+
+def no_overlap_reason(scales: ScaleRange) -> str:
+    """Why no hypothesis could be scored, and what to do."""
+    if scales.lowest > scales.highest:
+        return ("the reference is too wide for this block: at every scale at which the block "
+                "could overlap it, its grid would need more than "
+                f"{MAX_REFERENCE_CELLS} cells a side; crop the reference to the block's "
+                "surroundings")
+    return (f"no heading and scale ({scales.lowest:.3g}-{scales.highest:.3g} reference units "
+            f"per model unit) makes the tie points overlap the reference by {MIN_OVERLAP:.0%}")
 
 
 def _judged_by_turns(
@@ -510,6 +552,9 @@ def judge(
                        f"found pose (residual spread {residual_ratio:.2f} x the surface's own)")
     if best.overlap < MIN_OVERLAP:
         reasons.append(f"small overlap ({best.overlap:.0%} of the tie points)")
+    scale = math.exp(log_sigma) if fit_taken else best.sigma
+    if found.scales is not None and found.scales.at_edge(scale):
+        reasons.append(edge_reason(found.scales, scale))
     if disagrees:
         reasons.append(f"the continuous fit moved the scale by {math.expm1(rescaled):.0%} from "
                        "the search's answer: the two disagree")

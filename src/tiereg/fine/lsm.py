@@ -3,7 +3,8 @@
 Two observation models feed the one solver (:func:`~tiereg.fine.solver.solve_helmert`):
 
 1. **vertical**: the height difference to the gridded lidar surface (bilinear heights and
-   gradients of the reference's base grid; Rosenholm & Torlegard 1988), where it is gently sloped.
+   gradients of the reference's base grid, :meth:`~tiereg.reference.Reference.surface`;
+   Rosenholm & Torlegard 1988), where it is gently sloped.
    It needs no lidar points, only the grid, and it pulls a block a cell or two off back in.
 2. **surface**: the normal distance to the lidar's local surface at the nearest first return
    (LS3D, Gruen & Akca 2005), each patch weighted by how rough it is
@@ -120,31 +121,6 @@ def vertical_observer(sampler: SurfaceSampler) -> Observer:
     return observe
 
 
-def lidar_near(reference: Reference, xy: np.ndarray, radius: float) -> np.ndarray:
-    """The reference points (local coordinates) within about ``radius`` of any of ``xy``.
-
-    One streaming pass; a mask of cells of size ``radius`` marks the tie points' neighbourhoods,
-    so memory follows the number of tie points, not the lidar.
-    """
-    lo = xy.min(axis=0) - 2 * radius
-    shape = (np.ceil((xy.max(axis=0) + 2 * radius - lo) / radius)).astype(int) + 1
-    near = np.zeros((shape[1], shape[0]), bool)  # rows: y, cols: x
-    ix = ((xy - lo) / radius).astype(int)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            near[ix[:, 1] + dy, ix[:, 0] + dx] = True
-    kept = []
-    for chunk in reference.local_chunks():
-        jx = np.floor((chunk[:, 0] - lo[0]) / radius).astype(np.int64)
-        jy = np.floor((chunk[:, 1] - lo[1]) / radius).astype(np.int64)
-        inside = (jx >= 0) & (jx < shape[0]) & (jy >= 0) & (jy < shape[1])
-        sel = np.flatnonzero(inside)
-        sel = sel[near[jy[sel], jx[sel]]]
-        if len(sel):
-            kept.append(chunk[sel])
-    return np.concatenate(kept) if kept else np.empty((0, 3))
-
-
 def register_fine(
     placed: np.ndarray,
     reference: Reference,
@@ -162,7 +138,7 @@ def register_fine(
     t0 = time.perf_counter()
     hold = cell_size / 4
     radius = max(2.5 * reference.spacing, cell_size / 4)
-    lidar = lidar_near(reference, placed[:, :2], radius)
+    lidar = reference.points_near(placed[:, :2], radius)
     if len(lidar) < MIN_LIDAR:
         observe = _no_observations
     elif method == "icp-point":
@@ -176,7 +152,7 @@ def register_fine(
     start_spread = _spread(observe, placed)
     model, start, fit = method, Transform.identity(), None
     if method in ("lsm", "planes"):
-        sampler = SurfaceSampler.from_grid(reference.base)
+        sampler = reference.surface()
         vertical = solve_helmert(placed, vertical_observer(sampler), hold_displacement=hold)
         if observe is _no_observations:  # no lidar points near the tie points: the grid alone
             model, fit, observe = "vertical", vertical, vertical_observer(sampler)

@@ -110,7 +110,6 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     The same files as :func:`write_report`, but for what RESULT.json does not keep: blunders are
     those more than ``BLUNDER_NMADS`` robust standard deviations off (not the fine stage's
     weights), and there is no ``coarse_correlation.png``."""
-    from ..fine.lsm import lidar_near
     from ..io import open_points
     from ..pipeline import SURFACE_RADIUS_SPACINGS, height_differences, register
     from ..reference import prepare_reference
@@ -153,7 +152,7 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     local_after = after.residuals.xyz - reference.origin
     local_before = prior.residuals.xyz - reference.origin
     radius = SURFACE_RADIUS_SPACINGS * reference.spacing
-    lidar = lidar_near(reference, np.vstack([local_after, local_before])[:, :2], radius)
+    lidar = reference.points_near(np.vstack([local_after, local_before])[:, :2], radius)
     if len(lidar) >= 50:
         surface = LocalSurface(lidar, radius=radius)
         dz_before = height_differences(local_before, surface)

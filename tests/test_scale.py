@@ -1,0 +1,117 @@
+"""Models in any gauge: the scales searched come from the data, and memory does not follow them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tiereg import register
+from tiereg.coarse.scoring import MAX_REFERENCE_CELLS, SCALE_STEP, ScaleRange, tie_cell_for
+from tiereg.io.base import ArraySource
+from tiereg.points import PointSet
+from tiereg.reference import MAX_BASE_SIDE, prepare_reference
+from tiereg.simulate import (
+    HiddenTransform,
+    ImageBlock,
+    LidarSurvey,
+    SceneSpec,
+    make_scene,
+    make_world,
+)
+
+
+def _reference(extent_m: float, n: int = 20_000, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, extent_m, (n, 2)) + (500_000.0, 5_000_000.0)
+    z = 100 + 10 * np.sin(xy[:, 0] / 97.0) + rng.normal(0, 0.1, n)
+    return prepare_reference(ArraySource(PointSet(np.column_stack([xy, z]))))
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.03, 1.0, 40.0, 1e3])
+def test_the_scale_range_holds_a_block_in_any_gauge(scale):
+    """A block a third of the reference's width, in model units of any size: the true scale
+    (reference units per model unit) lies inside the range, well away from its edges."""
+    ref = _reference(3000.0)
+    rng = np.random.default_rng(1)
+    block_m = rng.uniform(-500, 500, (2000, 3))  # 1 km in reference units
+    moving = block_m / scale  # model units: ``scale`` reference units each
+    scales = ScaleRange.of(moving, ref, tie_cell_for(moving))
+    assert scales.lowest < scale < scales.highest
+    assert not scales.at_edge(scale)
+    # the range spans the same few octaves whatever the gauge
+    assert math.log2(scales.highest / scales.lowest) == pytest.approx(
+        math.log2(ScaleRange.of(block_m, ref, tie_cell_for(block_m)).highest
+                  / ScaleRange.of(block_m, ref, tie_cell_for(block_m)).lowest), abs=0.5)
+
+
+def test_the_lattice_keeps_its_steps_and_the_edges_are_a_step_wide():
+    scales = ScaleRange(0.2, 5.0)
+    lattice = scales.lattice(SCALE_STEP)
+    np.testing.assert_allclose(np.log(lattice) / np.log(SCALE_STEP),
+                               np.round(np.log(lattice) / np.log(SCALE_STEP)), atol=1e-9)
+    assert 0.25 in np.round(lattice, 12) and 4.0 in np.round(lattice, 12)
+    assert lattice[0] >= 0.2 and lattice[-1] <= 5.0
+    assert scales.lattice(SCALE_STEP, level=2)[0] < 0.2  # a coarser level scores finer scales
+    assert scales.at_edge(0.21) and scales.at_edge(4.9) and not scales.at_edge(1.0)
+
+
+def test_the_base_grid_is_bounded_whatever_the_reference_or_the_request():
+    wide = _reference(200_000.0)  # 200 km, sparse: the bound sets the cell
+    assert max(wide.base.spec.shape) <= MAX_BASE_SIDE + 2
+    asked = prepare_reference(wide.source, base_cell=0.01)  # centimetres asked for
+    assert max(asked.base.spec.shape) <= MAX_BASE_SIDE + 2
+    dense = _reference(300.0, n=200_000)  # 2.2 points per m2: the spacing sets the cell
+    assert dense.base_cell == pytest.approx(1.25 * math.sqrt(300.0**2 / 200_000), rel=0.05)
+
+
+def test_tie_grids_are_bounded_for_dense_models():
+    rng = np.random.default_rng(2)
+    dense = rng.uniform(0, 1000, (400_000, 3))
+    cell = tie_cell_for(dense)
+    assert 1000 / cell <= 1.2 * 256  # about MAX_TIE_SIDE cells a side, not 1,600
+
+
+@pytest.fixture(scope="module")
+def suburb_world():
+    return make_world("suburban", size_m=3000.0, seed=5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model_per_metre", [0.02, 80.0], ids=["scale50", "scale1/80"])
+def test_a_model_in_a_far_gauge_registers(suburb_world, model_per_metre):
+    """COLMAP puts models at tens to hundreds of reference units per model unit (and a model in
+    millimetres the other way): found without being told, coarse stage only."""
+    spec = SceneSpec(kind="suburban", seed=5, world_size_m=3000.0, lidar_size_m=2000.0,
+                     block=ImageBlock(side_m=1200.0), survey=LidarSurvey(density_per_m2=0.5),
+                     overlap=0.9, hidden=HiddenTransform(heading_deg=73.0, scale=model_per_metre))
+    scene = make_scene(spec, world=suburb_world)
+    result = register(scene.moving, scene.lidar.xyz, fine="none", level="none")
+    est, true = result.T_ref_mov.parameters(), scene.T_ref_mov.parameters()
+    assert result.confident, result.reasons
+    assert abs((math.degrees(est.kappa - true.kappa) + 180) % 360 - 180) < 2.0  # degrees
+    assert est.scale / true.scale == pytest.approx(1.0, abs=0.02)
+    centre = scene.moving.mean(axis=0, keepdims=True)
+    err = result.T_ref_mov.apply(centre) - scene.T_ref_mov.apply(centre)
+    assert np.hypot(*err[0, :2]) < result.cell_size  # within a coarse cell (reference units)
+
+
+def test_a_block_too_small_for_the_reference_is_not_claimed(suburb_world):
+    """A dense block a tenth of the reference's width, its tie cell under a 320th of it, cannot
+    be told apart at the search's grid (at most MAX_REFERENCE_CELLS cells a side): the scales
+    searched stop above the truth, and the answer is not confident."""
+    spec = SceneSpec(kind="suburban", seed=5, world_size_m=3000.0, lidar_size_m=2800.0,
+                     survey=LidarSurvey(density_per_m2=0.5))
+    lidar = make_scene(spec, world=suburb_world).lidar.xyz
+    centre = np.median(lidar, axis=0)
+    inside = np.flatnonzero(np.all(np.abs(lidar[:, :2] - centre[:2]) < 140.0, axis=1))
+    rng = np.random.default_rng(3)
+    moving = lidar[rng.choice(inside, 2000, replace=False)] - centre  # 280 m, 2,000 points
+    ref = prepare_reference(ArraySource(PointSet(lidar)))
+    scales = ScaleRange.of(moving, ref, tie_cell_for(moving))
+    assert scales.lowest > 1.0  # the premise: the true scale is finer than the grid allows
+    assert 2800.0 / (MAX_REFERENCE_CELLS * tie_cell_for(moving)) == pytest.approx(
+        scales.lowest, rel=0.05)
+    result = register(moving, ref, fine="none", level="none")
+    assert not result.confident
