@@ -39,6 +39,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference, prepare_reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
+from .verdict import Verdict, judge_refined
 
 MIN_MOVING_POINTS = 30
 # the quality heights: local planes of the lidar within this many spacings of a tie point; half a
@@ -100,11 +101,14 @@ class RegistrationResult:
     reference: Reference | None = field(default=None, repr=False, compare=False)
     levelling: dict[str, Any] | None = None  # how a model in any orientation was levelled
     reference_seconds: float = 0.0  # of ``seconds``: reading and gridding the reference
+    verdict: Verdict | None = None  # the refined fits of the coarse answer and its rivals
 
     def to_dict(self) -> dict[str, Any]:
         stages: list[dict[str, Any]] = []
         if self.coarse is not None:
             stages.append(self.coarse.to_dict())
+        if self.verdict is not None:
+            stages.append({"name": "verdict", **self.verdict.to_dict()})
         if self.fine is not None:
             stages.append(self.fine.to_dict())
         else:
@@ -389,6 +393,7 @@ def register(
     T_mov_local = Transform.from_translation(o_mov)  # local moving -> moving
 
     coarse_result: CoarseResult | None = None
+    verdict: Verdict | None = None
     reasons: list[str] = []
     if coarse == "none":
         T_local = T_in @ T_mov_local
@@ -408,10 +413,19 @@ def register(
         # the registration's cell, in reference units: the tie cell at the scale found
         cell_size = cell_size or coarse_result.cell_size
         before = _height_stats((T_in @ T_mov_local).apply(mov_local), ref.surface())
+        if coarse == "pomf":
+            confident, confidence = coarse_result.confident, coarse_result.confidence
+            reasons.extend(coarse_result.reasons)
+        else:  # the refined fits of the answer and its rivals decide
+            verdict = judge_refined(mov_local[keep], ref, coarse_result, tie_cell=tie_cell,
+                                    cell=cell_size)
+            T_local = verdict.best.T
+            confident = verdict.confident and not coarse_result.limits
+            confidence = verdict.confidence if confident else min(verdict.confidence, 0.49)
+            reasons.extend(verdict.reasons + coarse_result.limits)
         coarse_result = replace(coarse_result,
-                                T_ref_mov=_to_world(T_local, o_ref, o_mov) @ T_start)
-        confident, confidence = coarse_result.confident, coarse_result.confidence
-        reasons.extend(coarse_result.reasons)
+                                T_ref_mov=_to_world(coarse_result.T_ref_mov, o_ref, o_mov)
+                                @ T_start)
     sampler = ref.surface()
 
     T_before_fine = T_local
@@ -424,32 +438,25 @@ def register(
                         "from 0) were left out of the estimation: check them (a nodata height "
                         "such as -9999?)")
     fine_note = "not asked for (--fine none)"
-    if fine != "none" and confident:
+    if fine != "none":
         fine_result = register_fine(T_local.apply(mov_local[keep]), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
-        if fine_result.contradicts_coarse:
-            # the surface puts the block elsewhere than the coarse stage did: neither is sure
+        if fine_result.refused:
+            # the surface does not confirm the pose: nothing vouches for it to the tie points'
+            # precision, and a fine answer that moves far contradicts it
             confident = False
             start = "starting pose" if coarse == "none" else "coarse answer"
-            reasons.append(f"the fine stage contradicts the {start}: "
-                           f"{fine_result.refused}; check the inputs (noise points in the "
-                           "lidar not classed as noise, a wrong unit or CRS)")
-        elif fine_result.refused and coarse == "none":
-            # nothing but the fine stage vouches for a given starting pose
-            confident = False
-            reasons.append(f"the fine stage could not confirm the starting pose: "
-                           f"{fine_result.refused}; give a closer --initial, or let the coarse "
-                           "stage find the pose")
-        elif fine_result.refused:
-            warnings.append(f"the fine answer was refused: {fine_result.refused}; the "
-                            "coarse answer stands (try --fine icp-plane, or check the inputs)")
+            advice = ("check the inputs (noise points in the lidar not classed as noise, a wrong "
+                      "unit or CRS)" if fine_result.contradicts_coarse else
+                      "give a closer --initial, or let the coarse stage find the pose"
+                      if coarse == "none" else "check the inputs")
+            verb = "contradicts" if fine_result.contradicts_coarse else "could not confirm"
+            reasons.append(f"the fine stage {verb} the {start}: {fine_result.refused}; {advice}")
         else:
             T_local = fine_result.T_increment @ T_local
         if fine_result.held and not fine_result.refused:
             warnings.append(f"the data do not determine {', '.join(fine_result.held)} (flat or "
                             "featureless ground): held at the coarse answer")
-    elif fine != "none":
-        fine_note = "skipped: the coarse answer is not confident"
 
     placed = T_local.apply(mov_local)
     # the heights after registration against the lidar's own points where the fine stage read
@@ -496,4 +503,5 @@ def register(
         T_initial=initial,
         residuals=residuals,
         reference=ref,
+        verdict=verdict,
     )

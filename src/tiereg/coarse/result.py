@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..transform import Transform
+
+if TYPE_CHECKING:
+    from .scoring import Hypothesis
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,11 @@ class CoarseResult:
     reasons: tuple[str, ...]
     seconds: float
     details: dict[str, Any] = field(default_factory=dict)
+    # the distinct poses the searches considered (local frames, as ``T_ref_mov`` before the
+    # pipeline turns it into file coordinates): the rivals the verdict refines beside the answer
+    hypotheses: tuple[Hypothesis, ...] = field(default=(), repr=False, compare=False)
+    # reasons no refinement can lift: the answer lies where the search could not see past it
+    limits: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -290,6 +290,7 @@ def register_similarity(
                                    scales=scales, method="search", seeds=seeds,
                                    fits=fits, free_tilt=free_tilt)
         return replace(full, method="auto", seconds=time.perf_counter() - t0,
+                       hypotheses=full.hypotheses + considered(quick),
                        details={**full.details, "decided_by": "search", "timings_s": _rounded(
                            {**timings, **full.details.get("timings_s", {})})})
     extra: dict = {}
@@ -336,8 +337,9 @@ def register_similarity(
             timings["objects"] = t_searched - t_objects + second.seconds
             take = second.confident or (not result.confident and _explains_better(second, result))
             result, other = (second, result) if take else (result, second)
-            result = replace(result, details={**result.details, "other_channel": {
-                **other.details, "confident": other.confident, "reasons": list(other.reasons)}})
+            result = replace(result, hypotheses=result.hypotheses + other.hypotheses, details={
+                **result.details, "other_channel": {**other.details, "confident": other.confident,
+                                                    "reasons": list(other.reasons)}})
     return replace(result, seconds=time.perf_counter() - t0,
                    details={**result.details, "timings_s": _rounded(timings)})
 
@@ -398,6 +400,17 @@ def _judged_by_turns(
     return judged, second
 
 
+def considered(*found: SearchResult | None) -> tuple[Hypothesis, ...]:
+    """The poses searches considered, best first: each one's answer, rival and refined
+    candidates (and its alternative's)."""
+    out: list[Hypothesis] = []
+    for f in found:
+        while f is not None:
+            out += [f.best, *([f.runner_up] if f.runner_up else []), *f.levels[-1], f.sweep_best]
+            f = f.alternative
+    return tuple(out)
+
+
 def _judged_poses(found: SearchResult) -> list[Hypothesis]:
     """The hypotheses :func:`judge_choice` fits: the answer, and its alternative's."""
     return [found.best] + ([found.alternative.best] if found.alternative is not None else [])
@@ -414,7 +427,7 @@ def _not_judged(found: SearchResult, *, method: str, tie_cell: float) -> CoarseR
     return CoarseResult(
         best.transform(), method, False, 0.0, tie_cell * best.sigma, best.ncc,
         float(min(rival_ratio(found), 1e6)), best.overlap, 0.0, (),
-        (NOT_JUDGED,), 0.0,
+        (NOT_JUDGED,), 0.0, hypotheses=considered(found),
         details={"channel": HEIGHTS.name, "judged": False, "hypotheses": found.n_hypotheses,
                  "search_best": {"kappa_deg": math.degrees(best.kappa), "scale": best.sigma,
                                  "score": best.score}})
@@ -553,8 +566,9 @@ def judge(
     if best.overlap < MIN_OVERLAP:
         reasons.append(f"small overlap ({best.overlap:.0%} of the tie points)")
     scale = math.exp(log_sigma) if fit_taken else best.sigma
-    if found.scales is not None and found.scales.at_edge(scale):
-        reasons.append(edge_reason(found.scales, scale))
+    limits = ((edge_reason(found.scales, scale),)
+              if found.scales is not None and found.scales.at_edge(scale) else ())
+    reasons.extend(limits)
     if disagrees:
         reasons.append(f"the continuous fit moved the scale by {math.expm1(rescaled):.0%} from "
                        "the search's answer: the two disagree")
@@ -570,6 +584,7 @@ def judge(
         return Candidate(h.tx, h.ty, h.score, h.ncc, h.overlap, f"search level {h.level}")
 
     return CoarseResult(
+        hypotheses=considered(found), limits=limits,
         T_ref_mov=T, method=method, confident=confident, confidence=confidence,
         cell_size=cell, ncc=best.ncc, peak_ratio=float(min(ratio, 1e6)), overlap=best.overlap,
         psr=0.0, candidates=tuple(candidate(h) for level in found.levels for h in level),

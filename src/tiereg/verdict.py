@@ -1,0 +1,216 @@
+"""The verdict: is a registration reliable? Decided by what the refined poses explain.
+
+The coarse stage proposes an answer and the distinct poses its searches considered. The answer
+and its strongest genuinely different rivals are each refined by the fine stage's first model: a
+robust 7-parameter fit of the tie points' heights to the reference surface
+(:func:`~tiereg.fine.lsm.vertical_observer`, :func:`~tiereg.fine.solver.solve_helmert`). Then:
+
+1. **Noise.** The tightest refined fit's robust spread (NMAD of its height residuals) is the
+   noise the data allow: ``tau = NOISE_MULTIPLE * spread``. A tie point is *explained* by a pose
+   when its height lies within ``tau`` of the surface there.
+2. **The answer** is the pose that explains the most tie points (where only the refined fits
+   tell two poses apart, they decide).
+3. **Distinctness.** Against each rival, the tie points one pose explains and the other does
+   not are counted both ways, ``b`` and ``c``; if the two poses were equally good each such
+   point would be a fair coin, so ``z = (b - c) / sqrt(b + c)`` is a standard normal under that
+   hypothesis (McNemar 1947). The answer must stand out from every rival by :data:`MIN_Z`.
+   On flat, featureless ground every pose explains the heights alike and ``z`` stays small: the
+   verdict then says so instead of guessing.
+4. **Explained.** Its residual spread must be a small part of the spread of the surface heights
+   under the tie points (:data:`MAX_UNEXPLAINED`): a pose that explains tie points only as well
+   as any height would is no answer, however it compares with its rivals.
+
+The constants, what they guard and the benchmark figures that set them are listed in
+``docs/constants.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .coarse.refine import height_offset
+from .coarse.result import CoarseResult
+from .coarse.scoring import MIN_OVERLAP, Hypothesis
+from .coarse.search import RIVAL_KAPPA_DEG, RIVAL_SCALE, RIVAL_SHIFT_TIE_CELLS
+from .fine.lsm import MAX_MOVE_CELLS, vertical_observer
+from .fine.solver import solve_helmert
+from .reference import Reference
+from .robust import nmad
+from .surface import SurfaceSampler
+from .transform import Transform
+
+RIVALS = 3  # genuinely different poses refined beside the answer
+NOISE_MULTIPLE = 3.0  # a tie point within this many noise spreads of the surface is explained
+MIN_Z = 4.0  # the answer explains more tie points than any rival, z standard errors apart
+MAX_UNEXPLAINED = 0.5  # residual spread over the spread of the surface under the tie points
+
+
+@dataclass(frozen=True, eq=False)
+class RefinedPose:
+    """A pose after the refined fit, and what it explains."""
+
+    T_start: Transform  # local reference frame <- centred moving frame
+    T: Transform  # after the fit (the start where the fit ran away)
+    converged: bool
+    moved_cells: float  # how far the fit moved the block (RMS), in cells
+    dz: np.ndarray = field(repr=False)  # surface height - tie point height; NaN off the surface
+    surface_z: np.ndarray = field(repr=False)  # the surface's heights under the tie points
+
+    @property
+    def on_surface(self) -> float:
+        """The share of the tie points that land on the reference surface."""
+        return float(np.isfinite(self.dz).mean()) if len(self.dz) else 0.0
+
+    @property
+    def spread(self) -> float:
+        """NMAD of the height residuals on the surface (inf with fewer than 10)."""
+        dz = self.dz[np.isfinite(self.dz)]
+        return nmad(dz) if len(dz) >= 10 else math.inf
+
+    @property
+    def unexplained(self) -> float:
+        """Residual spread over the spread of the surface heights under the tie points: near 0
+        when the pose explains the heights, about 1.4 when they are unrelated."""
+        z = self.surface_z[np.isfinite(self.dz)]
+        spread = nmad(z) if len(z) >= 10 else 0.0
+        return self.spread / spread if spread > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Which pose is the answer, whether it is reliable, and the evidence."""
+
+    chosen: int  # index into ``poses``: 0 the coarse answer, then its rivals
+    poses: tuple[RefinedPose, ...] = field(repr=False)
+    confident: bool
+    confidence: float
+    reasons: tuple[str, ...]
+    noise: float  # the tightest refined spread: the noise the data allow
+    explained: tuple[int, ...]  # tie points each pose explains
+    z: tuple[float, ...]  # the answer against each pose (nan for itself)
+
+    @property
+    def best(self) -> RefinedPose:
+        return self.poses[self.chosen]
+
+    def to_dict(self) -> dict:
+        return {
+            "chosen": "coarse answer" if self.chosen == 0 else f"rival {self.chosen}",
+            "confident": self.confident, "confidence": round(self.confidence, 4),
+            "reasons": list(self.reasons), "noise": self.noise,
+            "explained_threshold": NOISE_MULTIPLE * self.noise,
+            "poses": [{
+                "kappa_deg": math.degrees(p.T.parameters().kappa) % 360.0,
+                "scale": p.T.parameters().scale,
+                "converged": p.converged, "moved_cells": p.moved_cells,
+                "on_surface": p.on_surface, "spread": p.spread, "unexplained": p.unexplained,
+                "explained": n, "z": None if not math.isfinite(z) else z,
+            } for p, n, z in zip(self.poses, self.explained, self.z)],
+        }
+
+
+def rival_poses(answer: Transform, hypotheses: tuple[Hypothesis, ...], *, tie_cell: float,
+                k: int = RIVALS) -> list[Hypothesis]:
+    """The ``k`` best-scored hypotheses genuinely different from the answer and from each
+    other: another heading (:data:`~tiereg.coarse.search.RIVAL_KAPPA_DEG`), scale
+    (:data:`~tiereg.coarse.search.RIVAL_SCALE`) or place
+    (:data:`~tiereg.coarse.search.RIVAL_SHIFT_TIE_CELLS` tie cells)."""
+    p = answer.parameters()
+    centre = answer.apply(np.zeros((1, 3)))[0]
+    mine = Hypothesis(p.kappa, p.scale, float(centre[0]), float(centre[1]), math.inf, 0.0, 1.0, 1)
+    out: list[Hypothesis] = []
+    for h in sorted(hypotheses, key=lambda h: -h.score):
+        if all(h.distinct_from(o, kappa_deg=RIVAL_KAPPA_DEG, log_sigma=math.log(RIVAL_SCALE),
+                               shift=RIVAL_SHIFT_TIE_CELLS * tie_cell * min(h.sigma, o.sigma))
+               for o in (mine, *out)):
+            out.append(h)
+            if len(out) == k:
+                break
+    return out
+
+
+def refine(moving: np.ndarray, surface: SurfaceSampler, T_start: Transform, *,
+           cell: float) -> RefinedPose:
+    """The refined fit from ``T_start`` (``moving``: centred model coordinates; ``cell``: the
+    registration's cell, reference units): kept where it converged within
+    :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS` cells, else the start stands."""
+    placed = T_start.apply(moving)
+    fit = solve_helmert(placed, vertical_observer(surface), hold_displacement=cell / 4)
+    moved = float(np.sqrt(np.mean(np.sum((fit.T.apply(placed) - placed) ** 2, axis=1)))) / cell
+    T = fit.T @ T_start if fit.converged and moved <= MAX_MOVE_CELLS else T_start
+    q = T.apply(moving)
+    z, ok = surface.sample(q[:, 0], q[:, 1])
+    return RefinedPose(T_start, T, bool(fit.converged), moved, np.where(ok, z - q[:, 2], np.nan),
+                       np.where(ok, z, np.nan))
+
+
+def pose_of(h: Hypothesis, moving: np.ndarray, surface: SurfaceSampler) -> Transform:
+    """A search hypothesis as a pose, its height offset the median one."""
+    placed = h.transform().apply(moving)
+    tz = height_offset(placed, surface, np.zeros(2))
+    return h.transform(tz=tz if np.isfinite(tz) else 0.0)
+
+
+def decide(moving: np.ndarray, reference: Reference, starts: list[Transform], *,
+           cell: float) -> Verdict:
+    """The verdict on ``starts`` (the coarse answer first, then its rivals; local frames,
+    ``moving`` centred): module docstring."""
+    surface = reference.surface()
+    poses = tuple(refine(moving, surface, T, cell=cell) for T in starts)
+    eligible = [i for i, p in enumerate(poses) if p.on_surface >= MIN_OVERLAP
+                and np.isfinite(p.spread)]
+    if not eligible:
+        return Verdict(0, poses, False, 0.0, (
+            f"no pose puts {MIN_OVERLAP:.0%} of the tie points on the reference surface",),
+            math.nan, (0,) * len(poses), (math.nan,) * len(poses))
+    noise = max(min(poses[i].spread for i in eligible), 1e-9)
+    tau = NOISE_MULTIPLE * noise
+    hits = [np.abs(np.nan_to_num(p.dz, nan=np.inf)) <= tau for p in poses]
+    counts = tuple(int(h.sum()) for h in hits)
+    best = max(eligible, key=lambda i: (counts[i], -poses[i].spread))
+    z = tuple(math.nan if j == best else _mcnemar(hits[best], hits[j]) for j in range(len(poses)))
+    return _judged(poses, best, counts, z, noise)
+
+
+def judge_refined(moving: np.ndarray, reference: Reference, coarse: CoarseResult, *,
+                  tie_cell: float, cell: float) -> Verdict:
+    """:func:`decide` between the coarse stage's answer (``coarse.T_ref_mov``, local frames)
+    and its :data:`RIVALS` strongest genuinely different rivals (:func:`rival_poses`)."""
+    surface = reference.surface()
+    rivals = rival_poses(coarse.T_ref_mov, coarse.hypotheses, tie_cell=tie_cell)
+    starts = [coarse.T_ref_mov, *(pose_of(h, moving, surface) for h in rivals)]
+    return decide(moving, reference, starts, cell=cell)
+
+
+def _mcnemar(a: np.ndarray, b: np.ndarray) -> float:
+    """``(n(a, not b) - n(b, not a)) / sqrt(their sum)``: 0 where the two agree throughout."""
+    only_a, only_b = int(np.sum(a & ~b)), int(np.sum(b & ~a))
+    return (only_a - only_b) / math.sqrt(only_a + only_b) if only_a + only_b else 0.0
+
+
+def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[int, ...],
+            z: tuple[float, ...], noise: float) -> Verdict:
+    chosen = poses[best]
+    rivals = [v for v in z if not math.isnan(v)]
+    z_min = min(rivals) if rivals else math.nan
+    reasons = []
+    if not rivals:
+        reasons.append("no other pose was considered, so none could be ruled out")
+    elif z_min < MIN_Z:
+        reasons.append(f"another heading, scale or position explains the tie points' heights "
+                       f"almost as well (z {z_min:.1f} < {MIN_Z:g})")
+    if chosen.unexplained > MAX_UNEXPLAINED:
+        reasons.append(f"the tie points' heights disagree with the reference surface at the "
+                       f"found pose (residual spread {chosen.unexplained:.2f} of the "
+                       f"surface's own, more than {MAX_UNEXPLAINED:g})")
+    if not chosen.converged:
+        reasons.append("the refined fit of the found pose did not converge")
+    distinct = min(z_min / (2 * MIN_Z), 1.0) if rivals else 0.0
+    fit = 1.0 - chosen.unexplained / (2 * MAX_UNEXPLAINED)
+    confidence = float(np.clip(min(distinct, fit), 0.0, 1.0))
+    if reasons:
+        confidence = min(confidence, 0.49)
+    return Verdict(best, poses, not reasons, confidence, tuple(reasons), noise, counts, z)
