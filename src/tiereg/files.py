@@ -104,6 +104,9 @@ def grid_to_geotiff(
                          median_sample=median_sample_for(per_cell))
     finally:
         bar.close()
+    if not grid.mask.any():  # every height NaN, or the header's bounds miss the points
+        raise InputError(f"{src.info.path}: no point with a finite height falls inside the "
+                         "bounds its header declares, so the grid would be empty; fix the file")
     values = grid.count.astype(np.float64) if stat == "count" else grid[stat]
     write_geotiff(out_path, values, spec, crs_wkt=src.info.crs_wkt)
     return spec

@@ -6,7 +6,11 @@ gridding code serves lidar and DSMs and memory stays bounded. Nodata cells are s
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import sys
+import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,10 +19,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import FormatError, InputError
-from .base import DEFAULT_CHUNK, PointSource, SourceInfo, atomic_output
+from .base import (
+    DEFAULT_CHUNK,
+    PointSource,
+    SourceInfo,
+    atomic_output,
+    check_input_file,
+    note_input,
+)
 
 if TYPE_CHECKING:
     from ..grid import GridSpec
+
+
+log = logging.getLogger(__name__)
 
 
 def _rasterio():
@@ -33,6 +47,8 @@ class RasterSource(PointSource):
     def __init__(self, path: str | os.PathLike[str]):
         rasterio = _rasterio()
         self.path = Path(path)
+        check_input_file(self.path)
+        note_input(self.path)
         try:
             with warnings.catch_warnings():  # said below, in one line, as an error
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
@@ -154,6 +170,32 @@ def write_geotiff(
     }
     if crs_wkt:
         profile["crs"] = crs_wkt
-    with atomic_output(path) as tmp:
+    with atomic_output(path) as tmp, _c_stderr_to_log():
         with rasterio.open(tmp, "w", **profile) as ds:
             ds.write(out.astype(dtype), 1)
+
+
+@contextlib.contextmanager
+def _c_stderr_to_log() -> Iterator[None]:
+    """GDAL's libtiff prints I/O errors (a full disk) straight to the process's stderr, past
+    Python: they are logged at debug level instead (the error itself arrives as an exception)."""
+    try:
+        fd = sys.stderr.fileno()
+        sys.stderr.flush()
+        saved = os.dup(fd)
+        spool = tempfile.TemporaryFile()
+    except (AttributeError, ValueError, OSError):  # no real stderr (captured), or no /tmp
+        yield
+        return
+    with spool:
+        os.dup2(spool.fileno(), fd)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, fd)
+            os.close(saved)
+            spool.seek(0)
+            text = spool.read().decode("utf-8", errors="replace").strip()
+            if text:
+                log.debug("GDAL: %s", " | ".join(text.splitlines()))
