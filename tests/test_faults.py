@@ -35,18 +35,15 @@ MEMORY_CAP = 1 << 30  # no case may grow past 1 GB (peak resident memory)
 ENV = {**os.environ, "COLUMNS": "200", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
 
 
-def _address_space() -> None:
-    """In the child: a runaway allocation fails at 2 GB of address space instead of taking the
-    machine (the cap on resident memory below is the assertion)."""
-    resource.setrlimit(resource.RLIMIT_AS, (2 * MEMORY_CAP, 2 * MEMORY_CAP))
-
-
 def run_cli(argv, *, cwd: Path | None = None) -> tuple[int, str, str, int]:
     """Run ``tiereg argv``: ``(exit code, stdout, stderr, peak resident bytes)``; fails the test
     on a hang. The child is reaped with ``wait4`` for its own peak memory."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen([str(EXE), *map(str, argv)], stdout=out, stderr=err, env=ENV,
-                                cwd=cwd, stdin=subprocess.DEVNULL, preexec_fn=_address_space)
+                                cwd=cwd, stdin=subprocess.DEVNULL)
+        # a runaway allocation fails at 2 GB of address space instead of taking the machine
+        # (the cap on resident memory below is the assertion)
+        resource.prlimit(proc.pid, resource.RLIMIT_AS, (2 * MEMORY_CAP, 2 * MEMORY_CAP))
         deadline = time.monotonic() + TIMEOUT_S
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -121,6 +118,14 @@ def _hostile_las(d: Path) -> None:
     _patched(small, d / "scale_nan.las", (147, "<d", math.nan))
     _patched(small, d / "bounds_nan.las", (179, "<d", math.nan))
     (d / "random.las").write_bytes(b"LASF" + np.random.default_rng(1).bytes(2000))
+    # 70 VLRs of 65,000 bytes: well formed, but 4.5 MB of records that hold kilobytes
+    b = bytearray(small.read_bytes())
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", b, 94)
+    vlrs = b"".join(b"\0\0" + b"big".ljust(16, b"\0") + struct.pack("<HH", i, 65000) +
+                    b"\0" * 32 + b"\1" * 65000 for i in range(70))
+    big = b[:header_size] + vlrs + b[offset:]
+    struct.pack_into("<II", big, 96, offset + len(vlrs), n_vlrs + 70)
+    (d / "big_vlrs.las").write_bytes(bytes(big))
     # LAZ: cut short, a chunk table offset past the end, and a chunk count of 2^32 - 1
     laz = (d / "lidar.laz").read_bytes()
     (d / "cut.laz").write_bytes(laz[: len(laz) * 2 // 3])
@@ -191,6 +196,7 @@ CASES = [
     ("info", "offset.las", "point data"),
     ("info", "count.las", "truncated"),
     ("info", "random.las", "random.las"),
+    ("info", "big_vlrs.las", "VLRs would take"),
     ("register", "vlrs.las", "VLR"),
     ("apply", "vlrs.las", "VLR"),
     # item 9: absurd scales and truncated or broken LAZ, in info and grid
@@ -300,7 +306,7 @@ def tiny(tmp_path_factory):
         pytest.skip("mounting a tmpfs needs root")
     mnt = tmp_path_factory.mktemp("tiny")
     proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.strip()}")
     try:
@@ -367,6 +373,65 @@ def test_apply_far_away_prints_no_warning(world, tmp_path):
     assert np.abs(moved - [3e7, 0.0, 0.0]).max() <= 0.01  # the scale of the file
 
 
+def test_large_evlrs_stay_on_disk_and_their_crs_is_read(tmp_path):
+    """A LAS 1.4 file with 5 MB of EVLRs (waveforms) and its CRS in one more: the header is
+    read without them, the CRS still is."""
+    import pyproj
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+    from laspy.vlrs.vlrlist import VLRList
+
+    from tiereg.io import open_points
+
+    xyz = np.column_stack([np.random.default_rng(0).uniform(0, 100, (100, 2)) + 500_000,
+                           np.zeros(100)])
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    data = laspy.LasData(header)
+    data.x, data.y, data.z = xyz.T
+    utm = pyproj.CRS.from_epsg(32632)
+    data.evlrs = VLRList([laspy.VLR("waveform", 1000, "samples", b"\1" * (5 << 20)),
+                          WktCoordinateSystemVlr(utm.to_wkt())])
+    data.write(str(tmp_path / "w.las"))
+    src = open_points(tmp_path / "w.las")
+    assert src.headers[0].evlrs is not None and len(src.headers[0].evlrs) == 1
+    assert pyproj.CRS.from_wkt(src.info.crs_wkt).equals(utm)
+    assert np.allclose(src.read().xyz[:, :2], xyz[:, :2], atol=0.01)
+
+
+def test_all_or_nothing_writes_every_output_or_none(tmp_path):
+    from tiereg.io import all_or_nothing, read_points
+    from tiereg.io.base import write_text_atomic
+
+    xyz = np.random.default_rng(0).uniform(0, 10, (20, 3))
+    with pytest.raises(RuntimeError), all_or_nothing(folders=[tmp_path / "new" / "deeper"]):
+        write_points(tmp_path / "a.xyz", xyz)
+        (tmp_path / "new" / "deeper").mkdir(parents=True)
+        write_text_atomic(tmp_path / "new" / "deeper" / "b.txt", "b")
+        raise RuntimeError("the third output failed")
+    assert list(tmp_path.iterdir()) == []  # no file, no temporary file, no folder
+    with all_or_nothing():
+        write_points(tmp_path / "a.xyz", xyz)
+        assert not (tmp_path / "a.xyz").exists()  # renamed into place at the end only
+        write_text_atomic(tmp_path / "b.txt", "b")
+    assert np.allclose(read_points(tmp_path / "a.xyz").xyz, xyz)
+    assert (tmp_path / "b.txt").read_text() == "b"
+
+
+def test_all_or_nothing_never_replaces_a_file_read_in_it(tmp_path):
+    """The last line of defence, for outputs no early check knew of: a file read in the block
+    is not replaced, and nothing else is written either."""
+    from tiereg.io import all_or_nothing, read_points
+
+    xyz = np.random.default_rng(0).uniform(0, 10, (20, 3))
+    write_points(tmp_path / "in.xyz", xyz)
+    before = (tmp_path / "in.xyz").read_bytes()
+    with pytest.raises(InputError, match="overwrite the input"), all_or_nothing():
+        points = read_points(tmp_path / "in.xyz")
+        write_points(tmp_path / "other.xyz", points.xyz)
+        write_points(tmp_path / "in.xyz", points.xyz + 1)
+    assert (tmp_path / "in.xyz").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.xyz"]
+
+
 # ------------------------------------------------------------------------------ the Python API
 @pytest.mark.parametrize("obj, fragment", [
     (None, "None"),
@@ -404,6 +469,16 @@ def test_as_point_source_opens_what_register_accepts(world):
     assert as_point_source(PointSet(xyz), role="moving").info.count == 50
     assert as_point_source(world / "lidar.laz", role="reference").info.count == 30_000
     assert as_point_source([world / "lidar.laz"], role="reference").info.format == "las"
+
+
+@pytest.mark.parametrize("obj", [None, 5, [[1.0, 2.0, 3.0]] * 40, []])
+def test_register_refuses_what_is_not_points(obj):
+    """The Python API as it stands: open_points, which register calls for whatever is not an
+    array, a PointSet or a source, says what it got instead of a TypeError."""
+    import tiereg
+
+    with pytest.raises(InputError, match="points are"):
+        tiereg.register(obj, np.zeros((50, 3)))
 
 
 def test_point_set_of_strings_is_an_input_error():

@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import signal
 import stat
 import sys
@@ -549,9 +550,15 @@ def _cli_message(text: str, command: str, parser: argparse.ArgumentParser) -> st
 
 
 def _run(args: argparse.Namespace) -> int:
-    """The command, writing all its outputs or none (``demo`` reads back what it writes)."""
-    if args.command == "demo":
-        return COMMANDS[args.command](args)
+    """The command, writing all its outputs or none."""
+    if args.command == "demo":  # it reads back what it writes: a new folder goes on failure
+        fresh = not os.path.lexists(args.out)
+        try:
+            return COMMANDS[args.command](args)
+        except BaseException:
+            if fresh and Path(args.out).is_dir():
+                shutil.rmtree(args.out, ignore_errors=True)
+            raise
     with all_or_nothing(folders=_output_folders(args)):
         try:
             return COMMANDS[args.command](args)

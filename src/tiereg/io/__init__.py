@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..crs import crs_label, is_geographic
 from ..errors import FormatError, InputError
 from ..points import PointSet
-from ..crs import crs_label, is_geographic
 from .base import (
     ArraySource,
     PointSource,
@@ -215,6 +215,8 @@ def check_not_input(out: str | os.PathLike[str], *inputs: object) -> None:
 
 def _expand(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
     """Turn a path, a glob pattern, a directory of tiles or a list of these into files."""
+    if not _is_paths(paths):
+        raise InputError(_not_points(paths, ""))
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     out: list[Path] = []
     for item in items:
@@ -297,17 +299,24 @@ def as_point_source(obj: PointsArg | PointSource, *, role: str,
         except InputError as exc:
             raise type(exc)(str(exc).replace("`format`", f"`{role}_format`")) from None
     else:
-        what = "an empty list" if isinstance(obj, (list, tuple)) and not obj else (
-            f"a {type(obj).__name__} of lists (give np.asarray(points), an (N, 3) array)"
-            if isinstance(obj, (list, tuple)) else "None" if obj is None
-            else f"a {type(obj).__name__} ({str(obj)[:40]!r})")
-        raise InputError(f"the {role} points are {what}; give a path, a list of paths, a "
-                         "PointSet or an (N, 3) array of x, y, z")
+        raise InputError(_not_points(obj, role))
     if is_geographic(source.info.crs_wkt):
         raise InputError(f"{source.info.path}: the {role} coordinates are longitude and latitude "
                          f"({crs_label(source.info.crs_wkt)}); reproject to a projected CRS "
                          "(metres or feet, e.g. UTM) first")
     return source
+
+
+def _not_points(obj: object, role: str) -> str:
+    """What was given in place of points, and what to give."""
+    kind = type(obj).__name__
+    a = "an" if kind[0] in "aeiou" else "a"
+    what = "an empty list" if isinstance(obj, (list, tuple)) and not obj else (
+        f"{a} {kind} of lists (give np.asarray(points), an (N, 3) array)"
+        if isinstance(obj, (list, tuple)) else "None" if obj is None
+        else f"{a} {kind} ({str(obj)[:40]!r})")
+    return (f"the {role + ' ' if role else ''}points are {what}; give a path, a list of paths, "
+            "a PointSet or an (N, 3) array of x, y, z")
 
 
 def _is_paths(obj: object) -> bool:

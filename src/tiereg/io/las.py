@@ -7,6 +7,7 @@ Several files (tiles) form one source.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import struct
@@ -46,17 +47,22 @@ def _backend():
 _HEADER_SIZE = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
 _VLR_HEADER, _EVLR_HEADER = 54, 60
 MAX_SCALE = 1000.0  # file units per integer step; coarser than this is no survey
+MAX_RECORD_BYTES = 4 << 20  # VLRs read at most (they hold kilobytes); EVLRs read whole at most
 _FIX = "the file is corrupt or truncated - re-export or re-download it"
+_CORRUPT = "the file is corrupt - re-export it"
 
 
-def check_header(path: Path) -> None:
+def check_header(path: Path) -> list[bytes] | None:
     """Refuse a LAS/LAZ file whose header does not fit the file, before laspy reads it.
 
     laspy trusts the header's counts: 2^32 - 1 VLRs after a short header take it hours and
     gigabytes, and a LAZ chunk table announcing 2^32 chunks asks for 64 GB. Checked here
     against the file's size: header size, offset to the points, every VLR and EVLR, the LAZ
     chunk table, and scales, offsets and bounds (finite; scales positive and at most
-    :data:`MAX_SCALE`).
+    :data:`MAX_SCALE`). VLRs may take :data:`MAX_RECORD_BYTES` in all (they hold kilobytes).
+
+    Returns ``None``, or, when the EVLRs take more than :data:`MAX_RECORD_BYTES` (waveforms),
+    the raw bytes of those that may hold a CRS: only they are read.
     """
     size = check_input_file(path).st_size
     with open_input(path) as fh:
@@ -71,8 +77,13 @@ def check_header(path: Path) -> None:
         if offset > size:
             raise FormatError(f"{path}: the point data would start at byte {offset}, past the "
                               f"end of the file ({size} bytes); {_FIX}")
+        if offset - header_size > MAX_RECORD_BYTES:
+            raise FormatError(f"{path}: its VLRs would take {offset - header_size:,} bytes, more "
+                              f"than the {MAX_RECORD_BYTES:,} tiereg reads (they hold kilobytes); "
+                              f"{_CORRUPT}")
         _check_records(path, fh, header_size, offset, n_vlrs, extended=False)
         count = struct.unpack_from("<I", head, 107)[0]
+        crs_evlrs = None
         if minor >= 4 and len(head) >= 255:
             first, n_evlrs, count64 = struct.unpack_from("<QIQ", head, 235)
             count = count or count64
@@ -80,26 +91,36 @@ def check_header(path: Path) -> None:
                 if not offset <= first <= size:
                     raise FormatError(f"{path}: the extended VLRs would start past the end of "
                                       f"the file; {_FIX}")
-                _check_records(path, fh, first, size, n_evlrs, extended=True)
+                crs = _check_records(path, fh, first, size, n_evlrs, extended=True)
+                if size - first > MAX_RECORD_BYTES:
+                    crs_evlrs = crs
         _check_numbers(path, head)
         if head[104] & 0xC0 and count:  # the compressed bits of the point format: LAZ
             _check_chunk_table(path, fh, offset, size)
+    return crs_evlrs
 
 
-def _check_records(path: Path, fh, start: int, end: int, count: int, *, extended: bool) -> None:
-    """Every one of ``count`` (E)VLRs, header and payload, lies between ``start`` and ``end``."""
+def _check_records(path: Path, fh, start: int, end: int, count: int, *,
+                   extended: bool) -> list[bytes]:
+    """Every one of ``count`` (E)VLRs, header and payload, lies between ``start`` and ``end``.
+    Returns the raw records of a CRS (user ID :data:`CRS_VLR_USER`) of up to 1 MB."""
     what = "extended VLRs (EVLRs)" if extended else "VLRs"
     step = _EVLR_HEADER if extended else _VLR_HEADER
     if count * step > end - start:
         raise FormatError(f"{path}: the header announces {count} {what}, more than the "
                           f"{end - start} bytes for them can hold; {_FIX}")
+    crs: list[bytes] = []
     pos = start
     for _ in range(count):  # at most (end - start) / step records
-        fh.seek(pos + 20)
-        length = struct.unpack("<Q" if extended else "<H", fh.read(8 if extended else 2))[0]
-        pos += step + length
-        if pos > end:
+        fh.seek(pos)
+        head = fh.read(step)
+        length = struct.unpack_from("<Q" if extended else "<H", head, 20)[0]
+        if pos + step + length > end:
             raise FormatError(f"{path}: one of its {what} runs past the bytes it has; {_FIX}")
+        if head[2:18].rstrip(b"\0") == CRS_VLR_USER.encode() and length <= 1 << 20:
+            crs.append(head + fh.read(length))
+        pos += step + length
+    return crs
 
 
 def _check_numbers(path: Path, head: bytes) -> None:
@@ -108,11 +129,13 @@ def _check_numbers(path: Path, head: bytes) -> None:
     bounds = struct.unpack_from("<6d", head, 179)
     if not all(math.isfinite(v) and 0 < v <= MAX_SCALE for v in scales):
         raise FormatError(f"{path}: the header's scale factors {list(scales)} are not usable "
-                          f"(positive numbers of at most {MAX_SCALE:g} are); {_FIX}")
+                          f"(positive numbers of at most {MAX_SCALE:g} are); {_CORRUPT}")
     if not all(map(math.isfinite, offsets)):
-        raise FormatError(f"{path}: the header's offsets {list(offsets)} are not finite; {_FIX}")
+        raise FormatError(f"{path}: the header's offsets {list(offsets)} are not finite; "
+                          f"{_CORRUPT}")
     if not all(map(math.isfinite, bounds)):
-        raise FormatError(f"{path}: the header's bounds {list(bounds)} are not finite; {_FIX}")
+        raise FormatError(f"{path}: the header's bounds {list(bounds)} are not finite; "
+                          f"{_CORRUPT}")
 
 
 def _check_chunk_table(path: Path, fh, start: int, size: int) -> None:
@@ -136,11 +159,17 @@ def _check_chunk_table(path: Path, fh, start: int, size: int) -> None:
 
 def _open_header(path: Path):
     laspy = _laspy()
-    check_header(path)
+    crs_evlrs = check_header(path)
     note_input(path)
     try:
-        with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
+        with laspy.open(path, mode="r", laz_backend=_backend(),
+                        read_evlrs=crs_evlrs is None) as reader:
             header = reader.header
+        if crs_evlrs is not None:  # large EVLRs (waveforms) stay on disk; their CRS is read
+            from laspy.vlrs.vlrlist import VLRList
+
+            header.evlrs = VLRList.read_from(io.BytesIO(b"".join(crs_evlrs)), len(crs_evlrs),
+                                             extended=True)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file; check the path") from None
     except _read_errors() as exc:
@@ -250,7 +279,8 @@ class LasSource(PointSource):
             # records of up to 64 kB (extra bytes): a chunk's buffer stays within CHUNK_BYTES
             n = max(1, min(chunk_size, CHUNK_BYTES // header.point_format.size))
             try:
-                with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
+                with laspy.open(path, mode="r", laz_backend=_backend(),
+                                read_evlrs=False) as reader:
                     for arr in reader.chunk_iterator(n):
                         yield arr
             except _read_errors() as exc:

@@ -33,6 +33,8 @@ if TYPE_CHECKING:
 
 
 log = logging.getLogger(__name__)
+MAX_CELLS = 2_000_000_000  # a 45 km square at 1 m; every cell is read once on opening
+MAX_SIDE = 1_000_000  # a row is read whole
 
 
 def _rasterio():
@@ -65,6 +67,12 @@ class RasterSource(PointSource):
                 f"{self.path}: not a readable GeoTIFF ({str(exc).splitlines()[0][:160]}); "
                 "check the file"
             ) from None
+        rows, cols = self.shape
+        if rows * cols > MAX_CELLS or cols > MAX_SIDE:
+            raise InputError(
+                f"{self.path}: the raster has {rows:,} x {cols:,} cells, more than tiereg reads "
+                f"as a surface ({MAX_CELLS:,} cells, {MAX_SIDE:,} a row); crop it or coarsen "
+                "it (gdalwarp -te / -tr) first")
         if bands != 1:  # an orthophoto (RGB, RGBA): no heights
             raise InputError(
                 f"{self.path}: a raster of {bands} bands ({dtype}) is not a surface of heights; "
@@ -170,9 +178,8 @@ def write_geotiff(
     }
     if crs_wkt:
         profile["crs"] = crs_wkt
-    with atomic_output(path) as tmp, _c_stderr_to_log():
-        with rasterio.open(tmp, "w", **profile) as ds:
-            ds.write(out.astype(dtype), 1)
+    with atomic_output(path) as tmp, _c_stderr_to_log(), rasterio.open(tmp, "w", **profile) as ds:
+        ds.write(out.astype(dtype), 1)
 
 
 @contextlib.contextmanager
@@ -181,13 +188,12 @@ def _c_stderr_to_log() -> Iterator[None]:
     Python: they are logged at debug level instead (the error itself arrives as an exception)."""
     try:
         fd = sys.stderr.fileno()
-        sys.stderr.flush()
-        saved = os.dup(fd)
-        spool = tempfile.TemporaryFile()
-    except (AttributeError, ValueError, OSError):  # no real stderr (captured), or no /tmp
+    except (AttributeError, ValueError, OSError):  # no real stderr (captured)
         yield
         return
-    with spool:
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as spool:
+        saved = os.dup(fd)
         os.dup2(spool.fileno(), fd)
         try:
             yield
