@@ -458,6 +458,20 @@ def test_as_point_source_refuses_longitude_and_latitude():
         as_point_source(points, role="reference")
 
 
+def test_register_refuses_a_point_set_in_longitude_and_latitude():
+    """As the command line refuses a file in them (the check lives where arrays become
+    sources)."""
+    import pyproj
+
+    import tiereg
+
+    xy = np.random.default_rng(0).uniform(0, 0.01, (100, 2)) + [9.0, 45.0]
+    lonlat = PointSet(np.column_stack([xy, np.zeros(100)]),
+                      crs_wkt=pyproj.CRS.from_epsg(4326).to_wkt())
+    with pytest.raises(InputError, match="longitude and latitude"):
+        tiereg.register(np.column_stack([xy * 1e5, np.zeros(100)]), lonlat)
+
+
 def test_as_point_source_names_the_role_in_format_errors(world):
     with pytest.raises(InputError, match="`reference_format`"):
         as_point_source(world / "junk.dat", role="reference")

@@ -333,8 +333,11 @@ def _cmd_overlap(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    from .io.base import check_input_file, note_input
     from .report import report_from_result_file
 
+    check_input_file(args.result)
+    note_input(args.result)  # no report file may replace it
     report = report_from_result_file(args.result, args.out,
                                      progress=_progress_factory(args.quiet))
     if not args.quiet:

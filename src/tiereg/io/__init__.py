@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..crs import crs_label, is_geographic
+from ..crs import refuse_geographic
 from ..errors import FormatError, InputError
 from ..points import PointSet
 from .base import (
@@ -285,6 +285,7 @@ def as_point_source(obj: PointsArg | PointSource, *, role: str,
     if isinstance(obj, PointSource):
         source = obj
     elif isinstance(obj, PointSet):
+        refuse_geographic(obj.crs_wkt, where=obj.source, role=role)
         source = ArraySource(obj)
     elif isinstance(obj, np.ndarray):
         if obj.dtype.kind not in "iuf":
@@ -300,10 +301,7 @@ def as_point_source(obj: PointsArg | PointSource, *, role: str,
             raise type(exc)(str(exc).replace("`format`", f"`{role}_format`")) from None
     else:
         raise InputError(_not_points(obj, role))
-    if is_geographic(source.info.crs_wkt):
-        raise InputError(f"{source.info.path}: the {role} coordinates are longitude and latitude "
-                         f"({crs_label(source.info.crs_wkt)}); reproject to a projected CRS "
-                         "(metres or feet, e.g. UTM) first")
+    refuse_geographic(source.info.crs_wkt, where=source.info.path, role=role)
     return source
 
 

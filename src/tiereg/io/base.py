@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..crs import refuse_geographic
 from ..errors import InputError, OutputError, TieregError
 from ..points import PointSet, check_finite
 
@@ -58,6 +59,7 @@ class ArraySource(PointSource):
 
     def __init__(self, points: PointSet, *, format: str = "array", details: dict | None = None):
         check_finite(points)
+        refuse_geographic(points.crs_wkt, where=points.source)  # as a file in them would be
         self._points = points
         lo, hi = points.bounds if len(points) else (np.zeros(3), np.zeros(3))
         self.info = SourceInfo(

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 MAX_CELLS = 2_000_000_000  # a 45 km square at 1 m; every cell is read once on opening
 MAX_SIDE = 1_000_000  # a row is read whole
+SCAN_CELLS = 1 << 18  # cells read at a time to count the valid ones
 
 
 def _rasterio():
@@ -110,13 +111,14 @@ class RasterSource(PointSource):
             },
         )
 
-    def _windows(self) -> Iterator[tuple[int, np.ndarray]]:
+    def _windows(self, block_rows: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
         rasterio = _rasterio()
         from rasterio.windows import Window
 
         with rasterio.open(self.path) as ds:
-            for row0 in range(0, self.shape[0], self.block_rows):
-                h = min(self.block_rows, self.shape[0] - row0)
+            step = block_rows or self.block_rows
+            for row0 in range(0, self.shape[0], step):
+                h = min(step, self.shape[0] - row0)
                 try:
                     band = ds.read(1, window=Window(0, row0, self.shape[1], h), masked=True)
                 except rasterio.errors.RasterioIOError as exc:
@@ -131,7 +133,8 @@ class RasterSource(PointSource):
         """Count the valid cells and find their value range (one pass over the raster)."""
         n = 0
         lo, hi = np.inf, -np.inf
-        for _, v in self._windows():
+        # small windows: opening (tiereg info) stays light whatever the raster's size
+        for _, v in self._windows(max(1, SCAN_CELLS // max(self.shape[1], 1))):
             ok = np.isfinite(v)
             n += int(ok.sum())
             if ok.any():
