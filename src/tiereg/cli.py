@@ -15,7 +15,6 @@ import os
 import re
 import shutil
 import signal
-import stat
 import sys
 import threading
 import warnings
@@ -255,6 +254,7 @@ def _summary(result) -> str:
 
 
 def _cmd_register(args: argparse.Namespace) -> int:
+    from .files import load_transform
     from .io import check_not_input, write_points
     from .io.base import check_writable, write_text_atomic
     from .pipeline import register
@@ -271,7 +271,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
                              "the points another name")
     if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
         raise InputError(f"--report {args.report}: is a file; give a folder for the report")
-    initial = _load_transform(args.initial)[0] if args.initial else None
+    initial = load_transform(args.initial)[0] if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
                       cell_size=args.cell_size, initial=initial, level=args.level,
                       free_tilt=args.free_tilt, moving_format=args.moving_format,
@@ -345,55 +345,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-MAX_TRANSFORM_BYTES = 16 << 20  # a RESULT.json or a matrix text is far smaller
-
-
-def _load_transform(path: str):
-    """The transform of a RESULT.json or a matrix file, and the CRS (WKT) of the frame it maps
-    into where a RESULT.json names it (its reference's), else ``None``."""
-    from .io.base import check_input_file, read_bytes
-    from .transform import Transform
-
-    p = Path(path)
-    st = check_input_file(p)
-    if not stat.S_ISREG(st.st_mode):
-        raise InputError(f"{p}: is a directory; give a RESULT.json or a matrix file")
-    if st.st_size > MAX_TRANSFORM_BYTES:
-        raise InputError(f"{p}: is {st.st_size:,} bytes, not a transform (a RESULT.json or a "
-                         "text of 16 numbers); check the order of the arguments")
-    text = read_bytes(p).decode("utf-8", errors="replace")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        if text.lstrip().startswith(("{", "[")):
-            raise InputError(f"{p}: is a broken JSON file ({exc.msg} at line {exc.lineno}, "
-                             f"column {exc.colno}); give the whole RESULT.json, e.g. write it "
-                             "again with tiereg register") from None
-        try:
-            return Transform.from_text(text), None
-        except InputError as exc2:
-            raise InputError(f"{p}: {exc2}") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{p}: a transform JSON must be an object with 'T_ref_mov' or 'matrix'")
-    try:
-        T = Transform.from_dict(data)
-    except InputError as exc:
-        raise InputError(f"{p}: {exc}") from None
-    except (TypeError, ValueError, KeyError, AttributeError):
-        raise InputError(f"{p}: its transform ('T_ref_mov' or 'matrix') is not a 4 x 4 matrix of "
-                         "numbers; give the RESULT.json tiereg register wrote") from None
-    inputs = data.get("inputs")
-    wkt = inputs.get("crs_wkt") if isinstance(inputs, dict) else None
-    return T, (wkt if isinstance(wkt, str) and wkt else None)
-
-
 def _cmd_apply(args: argparse.Namespace) -> int:
-    from .files import apply_to_file
+    from .files import apply_to_file, load_transform
     from .io import check_not_input
     from .io.las import SOURCE_CRS
 
     check_not_input(args.output, args.transform, args.input)
-    T, reference_crs = _load_transform(args.transform)
+    T, reference_crs = load_transform(args.transform)
     if args.inverse:
         T = T.inverse
     # forward, into the reference's frame and so its CRS where RESULT.json names it; the inverse
