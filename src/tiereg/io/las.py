@@ -96,7 +96,9 @@ def check_header(path: Path) -> list[bytes] | None:
                     crs_evlrs = crs
         _check_numbers(path, head)
         if head[104] & 0xC0 and count:  # the compressed bits of the point format: LAZ
-            _check_chunk_table(path, fh, offset, size)
+            record = struct.unpack_from("<H", head, 105)[0]
+            _check_chunk_table(path, fh, offset, size, max_chunks=min(
+                count, (size - offset) // max(record, 1)))
     return crs_evlrs
 
 
@@ -138,9 +140,10 @@ def _check_numbers(path: Path, head: bytes) -> None:
                           f"{_CORRUPT}")
 
 
-def _check_chunk_table(path: Path, fh, start: int, size: int) -> None:
+def _check_chunk_table(path: Path, fh, start: int, size: int, *, max_chunks: int) -> None:
     """The LAZ chunk table (its offset is the first 8 bytes of the point data, or, written
-    as -1, the last 8 of the file) lies in the file and counts no more chunks than bytes."""
+    as -1, the last 8 of the file) lies in the file and counts at most ``max_chunks`` chunks
+    (each holds a point, and its first point uncompressed)."""
     fh.seek(start)
     raw = fh.read(8)
     table = struct.unpack("<q", raw)[0] if len(raw) == 8 else size
@@ -152,9 +155,9 @@ def _check_chunk_table(path: Path, fh, start: int, size: int) -> None:
                           f"{table}, the file has {size}); re-export or re-download it")
     fh.seek(table + 4)
     chunks = struct.unpack("<I", fh.read(4))[0]
-    if chunks > table - start:
-        raise FormatError(f"{path}: the LAZ chunk table announces {chunks} chunks in "
-                          f"{table - start} bytes of points; {_FIX}")
+    if chunks > max_chunks:
+        raise FormatError(f"{path}: the LAZ chunk table announces {chunks} chunks, more than "
+                          f"the points and bytes of the file allow ({max_chunks}); {_FIX}")
 
 
 def _open_header(path: Path):
