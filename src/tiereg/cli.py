@@ -336,7 +336,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from .io.base import check_input_file, note_input
     from .report import report_from_result_file
 
-    check_input_file(args.result)
+    if os.path.lexists(args.result):  # a missing one: the report says what to give
+        check_input_file(args.result)  # a FIFO is refused, not waited on
     note_input(args.result)  # no report file may replace it
     report = report_from_result_file(args.result, args.out,
                                      progress=_progress_factory(args.quiet))
