@@ -124,8 +124,10 @@ def test_fill_normalized_reproduces_planes_and_keeps_data_where_dense():
 def test_bad_cell_size():
     with pytest.raises(InputError, match="cell size"):
         GridSpec.from_bounds(0, 0, 10, 10, 0.0)
-    with pytest.raises(InputError, match="larger --cell-size"):
+    with pytest.raises(InputError, match="larger `cell_size`"):
         GridSpec.from_bounds(0, 0, 1e6, 1e6, 0.01)
+    with pytest.raises(InputError, match="not finite"):  # was a bare ValueError of math.floor
+        GridSpec.from_bounds(float("nan"), 0, 10, 10, 1.0)
 
 
 def test_mask_bounds_are_the_box_of_the_true_cells_ends_exclusive():

@@ -8,14 +8,22 @@ anything else is a bug.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import os
+import re
+import shutil
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+import warnings
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from ._version import __version__
 from .errors import InputError, TieregError
+from .io.base import all_or_nothing
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NOT_CONFIDENT = 0, 2, 3
 log = logging.getLogger("tiereg")
@@ -246,22 +254,24 @@ def _summary(result) -> str:
 
 
 def _cmd_register(args: argparse.Namespace) -> int:
+    from .files import load_transform
     from .io import check_not_input, write_points
     from .io.base import check_writable, write_text_atomic
     from .pipeline import register
 
     out = Path(args.output)
+    inputs = (args.moving, args.reference, args.initial or [])
     check_writable(out)  # fail before any work if the result could not be written
-    check_not_input(out, args.moving, args.reference)
+    check_not_input(out, *inputs)
     if args.output_points:
         check_writable(args.output_points)
-        check_not_input(args.output_points, args.moving, args.reference)
+        check_not_input(args.output_points, *inputs)
         if Path(args.output_points).resolve() == out.resolve():
             raise InputError(f"--output-points {args.output_points}: is the -o file too; give "
                              "the points another name")
     if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
         raise InputError(f"--report {args.report}: is a file; give a folder for the report")
-    initial = _load_transform(args.initial)[0] if args.initial else None
+    initial = load_transform(args.initial)[0] if args.initial else None
     result = register(args.moving, args.reference, coarse=args.coarse, fine=args.fine,
                       cell_size=args.cell_size, initial=initial, level=args.level,
                       free_tilt=args.free_tilt, moving_format=args.moving_format,
@@ -323,8 +333,12 @@ def _cmd_overlap(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    from .io.base import check_input_file, note_input
     from .report import report_from_result_file
 
+    if os.path.lexists(args.result):  # a missing one: the report says what to give
+        check_input_file(args.result)  # a FIFO is refused, not waited on
+    note_input(args.result)  # no report file may replace it
     report = report_from_result_file(args.result, args.out,
                                      progress=_progress_factory(args.quiet))
     if not args.quiet:
@@ -332,38 +346,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _load_transform(path: str):
-    """The transform of a RESULT.json or a matrix file, and the CRS (WKT) of the frame it maps
-    into where a RESULT.json names it (its reference's), else ``None``."""
-    from .transform import Transform
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: no such transform file; give a RESULT.json or a matrix file")
-    text = p.read_text(encoding="utf-8", errors="replace")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError:
-        try:
-            return Transform.from_text(text), None
-        except InputError as exc:
-            raise InputError(f"{p}: {exc}") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{p}: a transform JSON must be an object with 'T_ref_mov' or 'matrix'")
-    try:
-        T = Transform.from_dict(data)
-    except InputError as exc:
-        raise InputError(f"{p}: {exc}") from None
-    inputs = data.get("inputs")
-    wkt = inputs.get("crs_wkt") if isinstance(inputs, dict) else None
-    return T, (wkt if isinstance(wkt, str) and wkt else None)
-
-
 def _cmd_apply(args: argparse.Namespace) -> int:
-    from .files import apply_to_file
+    from .files import apply_to_file, load_transform
+    from .io import check_not_input
     from .io.las import SOURCE_CRS
 
-    T, reference_crs = _load_transform(args.transform)
+    check_not_input(args.output, args.transform, args.input)
+    T, reference_crs = load_transform(args.transform)
     if args.inverse:
         T = T.inverse
     # forward, into the reference's frame and so its CRS where RESULT.json names it; the inverse
@@ -471,6 +460,75 @@ COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_r
             "info": _cmd_info, "demo": _cmd_demo}
 
 
+class _Terminated(BaseException):
+    """SIGTERM or SIGHUP, raised where the program is, so that every clean-up runs (temporary
+    files go) as for Ctrl-C."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    signal.signal(signum, signal.SIG_IGN)  # a second signal must not cut the clean-up short
+    raise _Terminated(signum)
+
+
+@contextlib.contextmanager
+def _signals_raise() -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signals reach the main thread only (main() called from a worker thread)
+        return
+    old = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+
+
+def _output_folders(args: argparse.Namespace) -> list[str]:
+    """The folders a command may create (removed again when it fails)."""
+    names = {"register": "report", "overlap": "out", "report": "out", "simulate": "out"}
+    folder = getattr(args, names.get(args.command, ""), None)
+    return [folder] if folder else []
+
+
+def _cli_message(text: str, command: str, parser: argparse.ArgumentParser) -> str:
+    """One printable line, with the library's parameter names (`cell_size`) given as the
+    command's options (--cell-size)."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    options = sub.choices[command]._option_string_actions
+
+    def flag(m: re.Match) -> str:
+        name = m.group(1)
+        if name == "format" and "--format" not in options and "--moving-format" in options:
+            return "--moving-format/--reference-format"
+        option = "--" + name.replace("_", "-")
+        return option if option in options else name
+
+    text = re.sub(r"`([a-z_]+)`", flag, " ".join(text.split()))
+    return "".join(c if c.isprintable() else f"\\x{ord(c):02x}" for c in text)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The command, writing all its outputs or none."""
+    if args.command == "demo":  # it reads back what it writes: a new folder goes on failure
+        fresh = not os.path.lexists(args.out)
+        try:
+            return COMMANDS[args.command](args)
+        except BaseException:
+            if fresh and Path(args.out).is_dir():
+                shutil.rmtree(args.out, ignore_errors=True)
+            raise
+    with all_or_nothing(folders=_output_folders(args)):
+        try:
+            return COMMANDS[args.command](args)
+        except BrokenPipeError:  # output piped into e.g. `head`: not an error of ours
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return EXIT_OK
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
     parser = build_parser()
@@ -479,18 +537,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"a command is needed: one of {', '.join(COMMANDS)}")
     _setup_logging(args)
     try:
-        return COMMANDS[args.command](args)
+        with _signals_raise(), warnings.catch_warnings():
+            if args.verbose < 2:  # numpy's and laspy's warnings: the user sees our one line
+                warnings.simplefilter("ignore")
+            return _run(args)
     except TieregError as exc:
-        print(f"tiereg {args.command}: error: {exc}", file=sys.stderr)
+        print(f"tiereg {args.command}: error: {_cli_message(str(exc), args.command, parser)}",
+              file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("tiereg: interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # output piped into e.g. `head`: not an error of ours
-        import os
-
+        return 128 + signal.SIGINT
+    except _Terminated as exc:
+        print(f"tiereg: stopped by {signal.Signals(exc.signum).name}", file=sys.stderr)
+        return 128 + exc.signum
+    except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
+    except OSError as exc:  # the system failed us (a disk error) outside any output: one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"tiereg {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -38,6 +38,17 @@ def is_geographic(wkt: str | None) -> bool:
     return crs is not None and crs.is_geographic
 
 
+def refuse_geographic(wkt: str | None, *, where: str, role: str = "") -> None:
+    """:class:`~tiereg.errors.InputError` when ``wkt`` is geographic: cells, shifts and scales
+    in degrees mean nothing. ``where`` names the data, ``role`` its part (moving, reference)."""
+    if is_geographic(wkt):
+        from .errors import InputError
+
+        raise InputError(f"{where}: the {role + ' ' if role else ''}coordinates are longitude "
+                         f"and latitude ({crs_label(wkt)}); reproject to a projected CRS (metres "
+                         "or feet, e.g. UTM) first")
+
+
 def same_crs(a: str | None, b: str | None) -> bool:
     """Whether two CRS records name the same CRS (both missing counts as the same; one missing
     or unparsable does not contradict the other)."""

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -14,12 +16,53 @@ from .crs import crs_label, crs_units
 from .errors import InputError
 from .grid import GridSpec, fill_normalized, median_sample_for, nice_size, rasterize
 from .io import check_not_input, open_points, write_points
+from .io.base import check_input_file, read_bytes
 from .io.las import SOURCE_CRS, LasSource, transform_las
 from .io.raster import RasterSource, write_geotiff
 from .progress import ProgressFactory, no_progress
 from .transform import Transform
 
 PathsLike = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+
+
+MAX_TRANSFORM_BYTES = 16 << 20  # a RESULT.json or a matrix text is far smaller
+
+
+def load_transform(path: str | os.PathLike[str]) -> tuple[Transform, str | None]:
+    """The transform of a RESULT.json (``T_ref_mov``), a JSON with ``matrix`` or ``parameters``,
+    or a text of 16 numbers (PDAL, CloudCompare), and the CRS (WKT) of the frame it maps into
+    where a RESULT.json names it (its reference's), else ``None``."""
+    p = Path(path)
+    st = check_input_file(p)
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{p}: is a directory; give a RESULT.json or a matrix file")
+    if st.st_size > MAX_TRANSFORM_BYTES:
+        raise InputError(f"{p}: is {st.st_size:,} bytes, not a transform (a RESULT.json or a "
+                         "text of 16 numbers); check the order of the arguments")
+    text = read_bytes(p).decode("utf-8", errors="replace")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        if text.lstrip().startswith(("{", "[")):
+            raise InputError(f"{p}: is a broken JSON file ({exc.msg} at line {exc.lineno}, "
+                             f"column {exc.colno}); give the whole RESULT.json, e.g. write it "
+                             "again with tiereg register") from None
+        try:
+            return Transform.from_text(text), None
+        except InputError as exc2:
+            raise InputError(f"{p}: {exc2}") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: a transform JSON must be an object with 'T_ref_mov' or 'matrix'")
+    try:
+        T = Transform.from_dict(data)
+    except InputError as exc:
+        raise InputError(f"{p}: {exc}") from None
+    except (TypeError, ValueError, KeyError, AttributeError):
+        raise InputError(f"{p}: its transform ('T_ref_mov' or 'matrix') is not a 4 x 4 matrix of "
+                         "numbers; give the RESULT.json tiereg register wrote") from None
+    inputs = data.get("inputs")
+    wkt = inputs.get("crs_wkt") if isinstance(inputs, dict) else None
+    return T, (wkt if isinstance(wkt, str) and wkt else None)
 
 
 def apply_to_file(
@@ -104,6 +147,9 @@ def grid_to_geotiff(
                          median_sample=median_sample_for(per_cell))
     finally:
         bar.close()
+    if not grid.mask.any():  # every height NaN, or the header's bounds miss the points
+        raise InputError(f"{src.info.path}: no point with a finite height falls inside the "
+                         "bounds its header declares, so the grid would be empty; fix the file")
     values = grid.count.astype(np.float64) if stat == "count" else grid[stat]
     write_geotiff(out_path, values, spec, crs_wkt=src.info.crs_wkt)
     return spec

@@ -57,6 +57,9 @@ class GridSpec:
         """
         if not (cell_size > 0 and math.isfinite(cell_size)):
             raise InputError(f"the cell size must be a positive number, got {cell_size}")
+        if not all(map(math.isfinite, (xmin, ymin, xmax, ymax))):
+            raise InputError(f"the extent to grid ({xmin}, {ymin}) - ({xmax}, {ymax}) is not "
+                             "finite: some coordinates are NaN or infinite; remove them")
         x0 = (math.floor(xmin / cell_size) - pad_cells) * cell_size
         y0 = (math.floor(ymax / cell_size) + 1 + pad_cells) * cell_size
         cols = int(math.floor((xmax - x0) / cell_size)) + 1 + pad_cells
@@ -64,7 +67,7 @@ class GridSpec:
         if rows * cols > max_cells:
             raise InputError(
                 f"a {cell_size:g}-unit grid over this extent would have {rows}x{cols} cells; "
-                "choose a larger --cell-size"
+                "choose a larger `cell_size`"
             )
         return cls(float(x0), float(y0), float(cell_size), (rows, cols))
 
@@ -308,7 +311,7 @@ def cell_size_from_density(xy: np.ndarray, *, points_per_cell: float = 0.64) -> 
     xy = np.asarray(xy, dtype=np.float64)[:, :2]
     n = len(xy)
     if n < 3:
-        raise InputError("need at least 3 points to derive a cell size; give --cell-size")
+        raise InputError("need at least 3 points to derive a cell size; give `cell_size`")
     centred = xy - xy.mean(axis=0)
     try:
         area = ConvexHull(centred).volume  # in 2-D, 'volume' is the area

@@ -22,7 +22,12 @@ class PointSet:
     crs_wkt: str | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        xyz = np.asarray(self.xyz, dtype=np.float64)
+        try:
+            xyz = np.asarray(self.xyz, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"{self.source}: points must be an (N, 3) array of numbers x, y, z, got "
+                f"{_describe(self.xyz)}") from None
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise InputError(
                 f"{self.source}: points must be an (N, 3) array of x, y, z, got shape {xyz.shape}"
@@ -39,6 +44,24 @@ class PointSet:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(min xyz, max xyz)``."""
         return self.xyz.min(axis=0), self.xyz.max(axis=0)
+
+
+def _describe(obj: object) -> str:
+    """A few words on what a caller gave in place of points."""
+    if isinstance(obj, np.ndarray):
+        return f"an array of {obj.dtype} with shape {obj.shape}"
+    return f"a {type(obj).__name__}"
+
+
+def check_finite(points: PointSet) -> None:
+    """Refuse points with a NaN or infinite coordinate, naming how many and the first row."""
+    finite = np.isfinite(points.xyz).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise InputError(
+            f"{points.source}: {len(bad)} of {len(finite)} points have NaN or infinite "
+            f"coordinates (the first in row {bad[0]}, from 0); remove them or fix the export"
+        )
 
 
 GROSS_FENCE = 3.0  # spans of the 1st-99th percentiles beyond either end: far outside the block
@@ -73,16 +96,12 @@ def validate_points(points: PointSet, *, min_count: int, role: str) -> None:
             f"{src}: the {role} side has {n} points, a registration needs at least {min_count}; "
             "give more points (a denser or larger tie-point set)"
         )
-    finite = np.isfinite(points.xyz).all(axis=1)
-    if not finite.all():
-        bad = int((~finite).sum())
-        raise InputError(
-            f"{src}: {bad} of {n} points have NaN or infinite coordinates; "
-            "remove them or fix the export"
-        )
+    check_finite(points)
     xy = points.xyz[:, :2] - points.xyz[:, :2].mean(axis=0)
     sv = np.linalg.svd(xy, compute_uv=False) / np.sqrt(n)
-    if sv[0] == 0:
+    # a spread within the rounding of the coordinates themselves is none (the mean of 200
+    # copies of 500000.123 is not exactly 500000.123)
+    if sv[0] <= 1e-12 * max(1.0, float(np.abs(points.xyz[:, :2]).max())):
         raise InputError(
             f"{src}: all {role} points share one horizontal position; "
             "a registration needs points spread over an area"

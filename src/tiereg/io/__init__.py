@@ -20,20 +20,32 @@ from __future__ import annotations
 
 import glob
 import os
+import stat
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..crs import refuse_geographic
 from ..errors import FormatError, InputError
 from ..points import PointSet
-from .base import ArraySource, PointSource, SourceInfo, atomic_output, open_input
+from .base import (
+    ArraySource,
+    PointSource,
+    SourceInfo,
+    all_or_nothing,
+    atomic_output,
+    check_input_file,
+    open_input,
+)
 
 __all__ = [
     "FORMATS",
     "PointSource",
     "SourceInfo",
+    "all_or_nothing",
+    "as_point_source",
     "atomic_output",
     "check_not_input",
     "detect_format",
@@ -153,9 +165,7 @@ def detect_format(path: str | os.PathLike[str], *, format: str | None = None) ->
                 f"unknown format {format!r}; choose one of: {', '.join(sorted(FORMATS))}"
             )
         return format
-    if not p.exists():
-        raise InputError(f"{p}: no such file or directory; check the path")
-    if p.is_dir():
+    if stat.S_ISDIR(check_input_file(p).st_mode):
         if FORMATS["colmap"].sniff(p, b""):
             return "colmap"
         raise InputError(
@@ -172,14 +182,14 @@ def detect_format(path: str | os.PathLike[str], *, format: str | None = None) ->
     if suffix in (".las", ".laz"):
         raise FormatError(
             f"{p}: does not start with the LAS signature 'LASF' - the file is corrupt or not "
-            "LAS/LAZ; re-export it or give its real format with --moving-format/--reference-format"
+            "LAS/LAZ; re-export it or name its real format with `format`"
         )
     if FORMATS["xyz"].sniff(p, head) or (suffix in FORMATS["xyz"].suffixes
                                           and _is_text(head)):
         return "xyz"  # a text file by its name: its reader says what it cannot read, and why
     raise FormatError(
         f"{p}: unknown point format (suffix {suffix or 'none'!r}); tiereg reads {_SUPPORTED} - "
-        "convert the file or name its format with --moving-format/--reference-format"
+        "convert the file or name its format with `format`"
     )
 
 
@@ -205,6 +215,8 @@ def check_not_input(out: str | os.PathLike[str], *inputs: object) -> None:
 
 def _expand(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
     """Turn a path, a glob pattern, a directory of tiles or a list of these into files."""
+    if not _is_paths(paths):
+        raise InputError(_not_points(paths, ""))
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     out: list[Path] = []
     for item in items:
@@ -254,6 +266,61 @@ def open_points(
         return LasSource(files)
     fmt = detect_format(files[0], format=format)
     return FORMATS[fmt].open(files[0])
+
+
+PointsArg = str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | PointSet | np.ndarray
+
+
+def as_point_source(obj: PointsArg | PointSource, *, role: str,
+                    format: str | None = None) -> PointSource:
+    """What a registration accepts as its ``role`` (``"moving"`` or ``"reference"``) points,
+    opened: a path, a glob, a folder of tiles or a list of paths (read with ``format`` when
+    given), a :class:`~tiereg.PointSet`, an ``(N, 3)`` array of numbers, or a
+    :class:`PointSource`.
+
+    Anything else, coordinates that are not finite, and coordinates in longitude and latitude
+    (a geographic CRS: cells, shifts and scales in degrees mean nothing) raise
+    :class:`InputError` naming ``role``; a format error names the ``<role>_format`` parameter.
+    """
+    if isinstance(obj, PointSource):
+        source = obj
+    elif isinstance(obj, PointSet):
+        refuse_geographic(obj.crs_wkt, where=obj.source, role=role)
+        source = ArraySource(obj)
+    elif isinstance(obj, np.ndarray):
+        if obj.dtype.kind not in "iuf":
+            raise InputError(f"the {role} array holds {obj.dtype} values, not numbers; give an "
+                             "(N, 3) array of x, y, z")
+        source = ArraySource(PointSet(obj, source=f"<{role} array>"))
+    elif _is_paths(obj):
+        if obj == "" or (isinstance(obj, (list, tuple)) and "" in obj):
+            raise InputError(f"the {role} path is empty; give a file, a folder or a pattern")
+        try:
+            source = open_points(obj, format=format)  # type: ignore[arg-type]
+        except InputError as exc:
+            raise type(exc)(str(exc).replace("`format`", f"`{role}_format`")) from None
+    else:
+        raise InputError(_not_points(obj, role))
+    refuse_geographic(source.info.crs_wkt, where=source.info.path, role=role)
+    return source
+
+
+def _not_points(obj: object, role: str) -> str:
+    """What was given in place of points, and what to give."""
+    kind = type(obj).__name__
+    a = "an" if kind[0] in "aeiou" else "a"
+    what = "an empty list" if isinstance(obj, (list, tuple)) and not obj else (
+        f"{a} {kind} of lists (give np.asarray(points), an (N, 3) array)"
+        if isinstance(obj, (list, tuple)) else "None" if obj is None
+        else f"{a} {kind} ({str(obj)[:40]!r})")
+    return (f"the {role + ' ' if role else ''}points are {what}; give a path, a list of paths, "
+            "a PointSet or an (N, 3) array of x, y, z")
+
+
+def _is_paths(obj: object) -> bool:
+    return isinstance(obj, (str, os.PathLike)) or (
+        isinstance(obj, (list, tuple)) and len(obj) > 0
+        and all(isinstance(p, (str, os.PathLike)) for p in obj))
 
 
 def read_points(

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..points import PointSet
-from .base import atomic_output, check_xyz, format_rows, freeze_arrays, read_bytes
+from .base import atomic_output, check_xyz, format_rows, freeze_arrays, open_input, read_bytes
 
 __all__ = [
     "ColmapModel",
@@ -99,7 +99,7 @@ def _read_points_txt(path: Path) -> np.ndarray:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-            with open(path, encoding="utf-8", errors="replace") as fh:
+            with open_input(path, "r", encoding="utf-8", errors="replace") as fh:
                 data = np.loadtxt(fh, dtype=np.float64, comments="#", usecols=range(8), ndmin=2)
     except ValueError:
         with open(path, encoding="utf-8", errors="replace") as fh:

@@ -7,7 +7,10 @@ Several files (tiles) form one source.
 
 from __future__ import annotations
 
+import io
+import math
 import os
+import struct
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -15,7 +18,15 @@ import numpy as np
 
 from ..crs import crs_label, same_crs
 from ..errors import FormatError, InputError
-from .base import DEFAULT_CHUNK, PointSource, SourceInfo, atomic_output
+from .base import (
+    DEFAULT_CHUNK,
+    PointSource,
+    SourceInfo,
+    atomic_output,
+    check_input_file,
+    note_input,
+    open_input,
+)
 
 
 def _laspy():  # laspy is a hard dependency; imported lazily to keep `import tiereg` light
@@ -32,11 +43,136 @@ def _backend():
     return None
 
 
+# LAS 1.x public header block: the size of each version's, and the fields checked here
+_HEADER_SIZE = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
+_VLR_HEADER, _EVLR_HEADER = 54, 60
+MAX_SCALE = 1000.0  # file units per integer step; coarser than this is no survey
+MAX_RECORD_BYTES = 4 << 20  # VLRs read at most (they hold kilobytes); EVLRs read whole at most
+_FIX = "the file is corrupt or truncated - re-export or re-download it"
+_CORRUPT = "the file is corrupt - re-export it"
+
+
+def check_header(path: Path) -> list[bytes] | None:
+    """Refuse a LAS/LAZ file whose header does not fit the file, before laspy reads it.
+
+    laspy trusts the header's counts: 2^32 - 1 VLRs after a short header take it hours and
+    gigabytes, and a LAZ chunk table announcing 2^32 chunks asks for 64 GB. Checked here
+    against the file's size: header size, offset to the points, every VLR and EVLR, the LAZ
+    chunk table, and scales, offsets and bounds (finite; scales positive and at most
+    :data:`MAX_SCALE`). VLRs may take :data:`MAX_RECORD_BYTES` in all (they hold kilobytes).
+
+    Returns ``None``, or, when the EVLRs take more than :data:`MAX_RECORD_BYTES` (waveforms),
+    the raw bytes of those that may hold a CRS: only they are read.
+    """
+    size = check_input_file(path).st_size
+    with open_input(path) as fh:
+        head = fh.read(375)
+        if len(head) < 227:
+            raise FormatError(f"{path}: the LAS header is cut short ({len(head)} bytes); {_FIX}")
+        major, minor = head[24], head[25]
+        header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+        if major != 1 or not _HEADER_SIZE.get(minor, 375) <= header_size <= min(size, offset):
+            raise FormatError(f"{path}: the LAS header is not valid (version {major}.{minor}, "
+                              f"header size {header_size}, point data at {offset}); {_FIX}")
+        if offset > size:
+            raise FormatError(f"{path}: the point data would start at byte {offset}, past the "
+                              f"end of the file ({size} bytes); {_FIX}")
+        if offset - header_size > MAX_RECORD_BYTES:
+            raise FormatError(f"{path}: its VLRs would take {offset - header_size:,} bytes, more "
+                              f"than the {MAX_RECORD_BYTES:,} tiereg reads (they hold kilobytes); "
+                              f"{_CORRUPT}")
+        _check_records(path, fh, header_size, offset, n_vlrs, extended=False)
+        count = struct.unpack_from("<I", head, 107)[0]
+        crs_evlrs = None
+        if minor >= 4 and len(head) >= 255:
+            first, n_evlrs, count64 = struct.unpack_from("<QIQ", head, 235)
+            count = count or count64
+            if n_evlrs:
+                if not offset <= first <= size:
+                    raise FormatError(f"{path}: the extended VLRs would start past the end of "
+                                      f"the file; {_FIX}")
+                crs = _check_records(path, fh, first, size, n_evlrs, extended=True)
+                if size - first > MAX_RECORD_BYTES:
+                    crs_evlrs = crs
+        _check_numbers(path, head)
+        if head[104] & 0xC0 and count:  # the compressed bits of the point format: LAZ
+            record = struct.unpack_from("<H", head, 105)[0]
+            _check_chunk_table(path, fh, offset, size, max_chunks=min(
+                count, (size - offset) // max(record, 1)))
+    return crs_evlrs
+
+
+def _check_records(path: Path, fh, start: int, end: int, count: int, *,
+                   extended: bool) -> list[bytes]:
+    """Every one of ``count`` (E)VLRs, header and payload, lies between ``start`` and ``end``.
+    Returns the raw records of a CRS (user ID :data:`CRS_VLR_USER`) of up to 1 MB."""
+    what = "extended VLRs (EVLRs)" if extended else "VLRs"
+    step = _EVLR_HEADER if extended else _VLR_HEADER
+    if count * step > end - start:
+        raise FormatError(f"{path}: the header announces {count} {what}, more than the "
+                          f"{end - start} bytes for them can hold; {_FIX}")
+    crs: list[bytes] = []
+    pos = start
+    for _ in range(count):  # at most (end - start) / step records
+        fh.seek(pos)
+        head = fh.read(step)
+        length = struct.unpack_from("<Q" if extended else "<H", head, 20)[0]
+        if pos + step + length > end:
+            raise FormatError(f"{path}: one of its {what} runs past the bytes it has; {_FIX}")
+        if head[2:18].rstrip(b"\0") == CRS_VLR_USER.encode() and length <= 1 << 20:
+            crs.append(head + fh.read(length))
+        pos += step + length
+    return crs
+
+
+def _check_numbers(path: Path, head: bytes) -> None:
+    scales = struct.unpack_from("<3d", head, 131)
+    offsets = struct.unpack_from("<3d", head, 155)
+    bounds = struct.unpack_from("<6d", head, 179)
+    if not all(math.isfinite(v) and 0 < v <= MAX_SCALE for v in scales):
+        raise FormatError(f"{path}: the header's scale factors {list(scales)} are not usable "
+                          f"(positive numbers of at most {MAX_SCALE:g} are); {_CORRUPT}")
+    if not all(map(math.isfinite, offsets)):
+        raise FormatError(f"{path}: the header's offsets {list(offsets)} are not finite; "
+                          f"{_CORRUPT}")
+    if not all(map(math.isfinite, bounds)):
+        raise FormatError(f"{path}: the header's bounds {list(bounds)} are not finite; "
+                          f"{_CORRUPT}")
+
+
+def _check_chunk_table(path: Path, fh, start: int, size: int, *, max_chunks: int) -> None:
+    """The LAZ chunk table (its offset is the first 8 bytes of the point data, or, written
+    as -1, the last 8 of the file) lies in the file and counts at most ``max_chunks`` chunks
+    (each holds a point, and its first point uncompressed)."""
+    fh.seek(start)
+    raw = fh.read(8)
+    table = struct.unpack("<q", raw)[0] if len(raw) == 8 else size
+    if table == -1 and size >= 16:
+        fh.seek(size - 8)
+        table = struct.unpack("<q", fh.read(8))[0]
+    if not start + 8 <= table <= size - 8:
+        raise FormatError(f"{path}: truncated LAZ file (its chunk table would be at byte "
+                          f"{table}, the file has {size}); re-export or re-download it")
+    fh.seek(table + 4)
+    chunks = struct.unpack("<I", fh.read(4))[0]
+    if chunks > max_chunks:
+        raise FormatError(f"{path}: the LAZ chunk table announces {chunks} chunks, more than "
+                          f"the points and bytes of the file allow ({max_chunks}); {_FIX}")
+
+
 def _open_header(path: Path):
     laspy = _laspy()
+    crs_evlrs = check_header(path)
+    note_input(path)
     try:
-        with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
+        with laspy.open(path, mode="r", laz_backend=_backend(),
+                        read_evlrs=crs_evlrs is None) as reader:
             header = reader.header
+        if crs_evlrs is not None:  # large EVLRs (waveforms) stay on disk; their CRS is read
+            from laspy.vlrs.vlrlist import VLRList
+
+            header.evlrs = VLRList.read_from(io.BytesIO(b"".join(crs_evlrs)), len(crs_evlrs),
+                                             extended=True)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file; check the path") from None
     except _read_errors() as exc:
@@ -142,10 +278,13 @@ class LasSource(PointSource):
 
     def _records(self, chunk_size: int) -> Iterator:
         laspy = _laspy()
-        for path in self.paths:
+        for path, header in zip(self.paths, self.headers):
+            # records of up to 64 kB (extra bytes): a chunk's buffer stays within CHUNK_BYTES
+            n = max(1, min(chunk_size, CHUNK_BYTES // header.point_format.size))
             try:
-                with laspy.open(path, mode="r", laz_backend=_backend()) as reader:
-                    for arr in reader.chunk_iterator(chunk_size):
+                with laspy.open(path, mode="r", laz_backend=_backend(),
+                                read_evlrs=False) as reader:
+                    for arr in reader.chunk_iterator(n):
                         yield arr
             except _read_errors() as exc:
                 raise FormatError(
@@ -154,6 +293,7 @@ class LasSource(PointSource):
                 ) from None
 
 
+CHUNK_BYTES = 256 << 20
 CRS_VLR_USER = "LASF_Projection"  # the user ID of the records that hold a CRS (GeoTIFF keys, WKT)
 SOURCE_CRS = "source"  # as a ``crs_wkt`` argument: the source's own CRS records, as they are
 
@@ -199,6 +339,23 @@ def _fit_offsets(header, lo: np.ndarray, hi: np.ndarray) -> None:
                 "the transformed points span more than the LAS integer range at the source "
                 f"scale {scales.tolist()}; write to .ply or .xyz instead"
             )
+
+
+def _set_coordinates(arr, xyz: np.ndarray, header, path: Path) -> None:
+    """Store ``xyz`` in a point record as the integers of ``header``'s scales and offsets; a
+    point the integers cannot hold (the file's points lie outside its header's bounds, from
+    which the offsets were chosen) is an error, not a wrapped-around coordinate."""
+    scales = np.asarray(header.scales, dtype=np.float64)
+    offsets = np.asarray(header.offsets, dtype=np.float64)
+    ints = np.rint((xyz - offsets) / scales)
+    if not np.all(np.abs(ints) <= 2**31 - 1):  # NaN fails too
+        raise FormatError(
+            f"{path}: some points lie far outside the bounds its header declares, so their "
+            "transformed coordinates do not fit the LAS integers; fix the header (e.g. rewrite "
+            "the file with PDAL or lasinfo -repair) or write to .ply or .xyz")
+    for k, name in enumerate("XYZ"):
+        arr[name] = ints[:, k].astype(np.int32)
+    arr.scales, arr.offsets = scales, offsets
 
 
 def write_las(
@@ -270,9 +427,7 @@ def transform_las(
                         laz_backend=_backend() if compress else None) as writer:
             for arr in source._records(chunk_size):
                 xyz = np.column_stack([arr.x, arr.y, arr.z])
-                new = apply(xyz)
-                arr.change_scaling(scales=header.scales, offsets=header.offsets)
-                arr.x, arr.y, arr.z = new[:, 0], new[:, 1], new[:, 2]
+                _set_coordinates(arr, apply(xyz), header, source.paths[0])
                 writer.write_points(arr)
                 if progress is not None:
                     progress(len(arr))

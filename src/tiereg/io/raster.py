@@ -6,7 +6,11 @@ gridding code serves lidar and DSMs and memory stays bounded. Nodata cells are s
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import sys
+import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,10 +19,23 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import FormatError, InputError
-from .base import DEFAULT_CHUNK, PointSource, SourceInfo, atomic_output
+from .base import (
+    DEFAULT_CHUNK,
+    PointSource,
+    SourceInfo,
+    atomic_output,
+    check_input_file,
+    note_input,
+)
 
 if TYPE_CHECKING:
     from ..grid import GridSpec
+
+
+log = logging.getLogger(__name__)
+MAX_CELLS = 2_000_000_000  # a 45 km square at 1 m; every cell is read once on opening
+MAX_SIDE = 1_000_000  # a row is read whole
+SCAN_CELLS = 1 << 18  # cells read at a time to count the valid ones
 
 
 def _rasterio():
@@ -33,6 +50,8 @@ class RasterSource(PointSource):
     def __init__(self, path: str | os.PathLike[str]):
         rasterio = _rasterio()
         self.path = Path(path)
+        check_input_file(self.path)
+        note_input(self.path)
         try:
             with warnings.catch_warnings():  # said below, in one line, as an error
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
@@ -49,6 +68,12 @@ class RasterSource(PointSource):
                 f"{self.path}: not a readable GeoTIFF ({str(exc).splitlines()[0][:160]}); "
                 "check the file"
             ) from None
+        rows, cols = self.shape
+        if rows * cols > MAX_CELLS or cols > MAX_SIDE:
+            raise InputError(
+                f"{self.path}: the raster has {rows:,} x {cols:,} cells, more than tiereg reads "
+                f"as a surface ({MAX_CELLS:,} cells, {MAX_SIDE:,} a row); crop it or coarsen "
+                "it (gdalwarp -te / -tr) first")
         if bands != 1:  # an orthophoto (RGB, RGBA): no heights
             raise InputError(
                 f"{self.path}: a raster of {bands} bands ({dtype}) is not a surface of heights; "
@@ -86,13 +111,14 @@ class RasterSource(PointSource):
             },
         )
 
-    def _windows(self) -> Iterator[tuple[int, np.ndarray]]:
+    def _windows(self, block_rows: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
         rasterio = _rasterio()
         from rasterio.windows import Window
 
         with rasterio.open(self.path) as ds:
-            for row0 in range(0, self.shape[0], self.block_rows):
-                h = min(self.block_rows, self.shape[0] - row0)
+            step = block_rows or self.block_rows
+            for row0 in range(0, self.shape[0], step):
+                h = min(step, self.shape[0] - row0)
                 try:
                     band = ds.read(1, window=Window(0, row0, self.shape[1], h), masked=True)
                 except rasterio.errors.RasterioIOError as exc:
@@ -107,7 +133,8 @@ class RasterSource(PointSource):
         """Count the valid cells and find their value range (one pass over the raster)."""
         n = 0
         lo, hi = np.inf, -np.inf
-        for _, v in self._windows():
+        # small windows: opening (tiereg info) stays light whatever the raster's size
+        for _, v in self._windows(max(1, SCAN_CELLS // max(self.shape[1], 1))):
             ok = np.isfinite(v)
             n += int(ok.sum())
             if ok.any():
@@ -154,6 +181,30 @@ def write_geotiff(
     }
     if crs_wkt:
         profile["crs"] = crs_wkt
-    with atomic_output(path) as tmp:
-        with rasterio.open(tmp, "w", **profile) as ds:
-            ds.write(out.astype(dtype), 1)
+    with atomic_output(path) as tmp, _c_stderr_to_log(), rasterio.open(tmp, "w", **profile) as ds:
+        ds.write(out.astype(dtype), 1)
+
+
+@contextlib.contextmanager
+def _c_stderr_to_log() -> Iterator[None]:
+    """GDAL's libtiff prints I/O errors (a full disk) straight to the process's stderr, past
+    Python: they are logged at debug level instead (the error itself arrives as an exception)."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, ValueError, OSError):  # no real stderr (captured)
+        yield
+        return
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as spool:
+        saved = os.dup(fd)
+        os.dup2(spool.fileno(), fd)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, fd)
+            os.close(saved)
+            spool.seek(0)
+            text = spool.read().decode("utf-8", errors="replace").strip()
+            if text:
+                log.debug("GDAL: %s", " | ".join(text.splitlines()))

@@ -96,7 +96,7 @@ def _bad_line(path: Path, n: int, line: str, need: int, delimiter: str | None) -
     hint = "; use a decimal point, not a comma" if delimiter == ";" and "," in line else ""
     return FormatError(
         f"{path}: line {n}: expected at least three numbers x y z, found {what} ({shown!r})"
-        f"{hint}; fix the file or give its real format with --moving-format/--reference-format"
+        f"{hint}; fix the file or name its real format with `format`"
     )
 
 
