@@ -19,6 +19,7 @@ A scale range wider than an octave is searched as octaves, each with windows of 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -26,15 +27,17 @@ from typing import Any
 import numpy as np
 
 from .archive import ArchiveSource, Box
-from .coarse.scoring import HEIGHTS, MAX_REFERENCE_CELLS
-from .coarse.search import NoOverlap, search
+from .coarse.scoring import HEIGHTS, MAX_REFERENCE_CELLS, Scorer
 from .errors import InputError
 from .grid import Grid, GridSpec, cell_size_from_density
+from .parallel import map_threads
 from .pipeline import RegistrationResult, register
 from .points import gross_outliers, validate_points
 from .reference import Reference
 
 TOP = 3  # distinct places judged
+SCREEN_LEVEL = 3  # tie cells a screening cell (the sweep: 2): chosen on the dev blocks
+KAPPA_STEP_DEG, SIGMA_RATIO = 7.5, 2 ** (1 / 5)  # the sweep's steps
 JUDGE_MARGIN = 0.85  # judged windows: this share of one search grid at the candidate's scale
 MIN_OVERLAP = 0.3
 
@@ -110,14 +113,27 @@ def octaves(sigma_range: tuple[float, float]) -> list[tuple[float, float]]:
 
 
 def screen_window(overview: Reference, box: Box, moving: np.ndarray, *, tie_cell: float,
-                  sigma_range: tuple[float, float]) -> Candidate | None:
-    """The best heading, scale and shift of ``moving`` (centred) in one window (a task)."""
+                  sigma_range: tuple[float, float], level: int = SCREEN_LEVEL
+                  ) -> Candidate | None:
+    """The best-correlated heading, scale and shift of ``moving`` (centred) in one window, from
+    the sweep alone (every :data:`KAPPA_STEP_DEG`, scales :data:`SIGMA_RATIO` apart, at
+    ``level`` tie cells a search cell; a task)."""
     try:
-        found = search(moving, window_reference(overview, box), tie_cell=tie_cell,
-                       sigma_range=sigma_range, channel=HEIGHTS)
-    except (NoOverlap, InputError):
+        wref = window_reference(overview, box)
+    except InputError:
         return None
-    h = found.best
+    scorer = Scorer(moving, wref, tie_cell, level,
+                    channel=replace(HEIGHTS, tie_stat=HEIGHTS.sweep_tie_stat))
+    lo, hi = sigma_range
+    n = max(0, math.ceil(math.log(hi / lo) / math.log(SIGMA_RATIO) - 1e-9))
+    sigmas = [float(lo * SIGMA_RATIO**i) for i in range(n + 1)]
+    kappas = list(np.radians(np.arange(0.0, 360.0, KAPPA_STEP_DEG)))
+    scorer.prepare_for(sigmas)
+    scored = map_threads(lambda sg: scorer.score_many(kappas, sg), sigmas)
+    hyps = [h for hs in scored for h in hs if h is not None]
+    if not hyps:
+        return None
+    h = max(hyps, key=lambda h: h.score)
     return Candidate(box, (h.tx, h.ty), math.degrees(h.kappa), h.sigma, h.score)
 
 
@@ -132,19 +148,18 @@ def _distinct(cands: list[Candidate], k: int, diag: float) -> list[Candidate]:
     return out
 
 
-def _judge(moving: Any, ref: Reference, cand: Candidate, *, side: float,
-           options: dict) -> RegistrationResult:
+def _judge_box(cand: Candidate, side: float) -> Box:
     x, y = cand.centre
-    box = (x - side / 2, y - side / 2, x + side / 2, y + side / 2)
-    return register(moving, window_reference(ref, box), **options)
+    return (x - side / 2, y - side / 2, x + side / 2, y + side / 2)
 
 
 def find_in_mosaic(moving: Any, ref: Reference, *, client: Any = None,
                    sigma_range: tuple[float, float] = (0.25, 4.0), top: int = TOP,
-                   **options: Any) -> MosaicResult:
+                   overviews: Overviews | None = None, **options: Any) -> MosaicResult:
     """Register ``moving`` (a path, or what :func:`tiereg.register` takes) anywhere in the
     prepared ``ref`` (see the module docstring); windows and judgements are tasks on
     ``client`` (here without one). ``sigma_range``: reference units per model unit.
+    ``overviews``: the overview grids sent to the workers, to share between blocks.
     ``options`` go to :func:`tiereg.register`."""
     from .distributed import submit_all
     from .io import read_points
@@ -160,15 +175,13 @@ def find_in_mosaic(moving: Any, ref: Reference, *, client: Any = None,
     cands: list[Candidate] = []
     n_windows = 0
     for lo, hi in octaves(sigma_range):
-        side = 2 * MAX_REFERENCE_CELLS * tie_cell * lo  # the sweep's level-2 grid at ``lo``
+        side = SCREEN_LEVEL * MAX_REFERENCE_CELLS * tie_cell * lo  # one search grid at ``lo``
         if side >= max(x1 - x0, y1 - y0):  # the whole reference is one search grid
             boxes = [(x0, y0, x1, y1)]
         else:
             boxes = windows((x0, y0, x1, y1), side, max(side - diag * hi, side / 4))
         k = max(1, int(round(tie_cell * lo / ref.base_cell)))
-        overview = replace(ref, base=ref.grid(k * ref.base_cell), _cache={})
-        if client is not None:
-            overview = client.scatter(overview, broadcast=True)
+        overview = (overviews or Overviews(ref, client)).get(k)
         found = submit_all(client, _screen_box, boxes, overview=overview, moving=local,
                            tie_cell=tie_cell, sigma_range=(lo, hi))
         cands += [c for c in found if c is not None]
@@ -179,8 +192,8 @@ def find_in_mosaic(moving: Any, ref: Reference, *, client: Any = None,
                          f"scale in {sigma_range}; check that the block lies in the lidar")
     best = _distinct(cands, top, diag)
     sides = [JUDGE_MARGIN * MAX_REFERENCE_CELLS * tie_cell * c.sigma for c in best]
-    results = submit_all(client, _judge_pair, list(zip(best, sides)), moving=moving, ref=ref,
-                         options=options)
+    judged = [window_reference(ref, _judge_box(c, side)) for c, side in zip(best, sides)]
+    results = submit_all(client, _register, judged, moving=moving, options=options)
     verdict = _verdict(results, np.median(xyz, axis=0))
     return MosaicResult(verdict, n_windows, tuple(best), tuple(r.confident for r in results),
                         t_screen, time.perf_counter() - t0 - t_screen)
@@ -191,9 +204,28 @@ def _screen_box(box: Box, *, overview: Reference, moving: np.ndarray, tie_cell: 
     return screen_window(overview, box, moving, tie_cell=tie_cell, sigma_range=sigma_range)
 
 
-def _judge_pair(pair: tuple[Candidate, float], *, moving: Any, ref: Reference,
-                options: dict) -> RegistrationResult:
-    return _judge(moving, ref, pair[0], side=pair[1], options=options)
+def _register(window: Reference, *, moving: Any, options: dict) -> RegistrationResult:
+    return register(moving, window, **options)
+
+
+class Overviews:
+    """The reference's base grid aggregated ``k`` base cells a side, made once and, with a
+    client, sent once to every worker (a future); shared by the blocks of a batch."""
+
+    def __init__(self, ref: Reference, client: Any = None):
+        self.ref, self.client = ref, client
+        self._made: dict[int, Any] = {}
+        self._lock = threading.Lock()
+
+    def get(self, k: int) -> Any:
+        with self._lock:
+            if k not in self._made:
+                ref = self.ref
+                overview = Reference(ref.source, ref.origin, ref.grid(k * ref.base_cell),
+                                     ref.first_returns_only, source_args=ref.source_args)
+                self._made[k] = overview if self.client is None else self.client.scatter(
+                    overview, broadcast=True)
+            return self._made[k]
 
 
 def validate_points_xyz(xyz: np.ndarray) -> None:
