@@ -166,8 +166,13 @@ def phase_mosaic(args, out: dict) -> None:
 
 
 def _save(out: dict) -> None:
+    """Merge this run's phases into the results file (a phase run alone keeps the other's)."""
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "scale.json").write_text(json.dumps(out, indent=1, default=float))
+    path = RESULTS / os.environ.get("SCALE_JSON", "scale.json")
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    for key, value in out.items():
+        old[key] = {**old.get(key, {}), **value} if isinstance(value, dict) else value
+    path.write_text(json.dumps(old, indent=1, default=float))
 
 
 def main() -> None:
@@ -179,8 +184,7 @@ def main() -> None:
     import scale_data
 
     scale_data.make_data(HERE / "work")
-    path = RESULTS / "scale.json"
-    out = json.loads(path.read_text()) if path.is_file() else {}
+    out: dict = {}
     out["machine"] = {"cpus": os.cpu_count(), "memory_gb": round(
         os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)}
     if args.phase in ("grid", "all"):

@@ -21,14 +21,14 @@ from tiereg.distributed import cluster
 pytest.importorskip("distributed")
 
 TRUTHS = {  # T_mov_ref of each block: heading (deg), scale (model units per metre), centre
-    "north": (35.0, 1.0, (-200.0, 150.0)),
-    "south": (250.0, 2.0, (300.0, -200.0)),
+    "north": (35.0, 1.0, (-150.0, 150.0)),
+    "south": (250.0, 2.0, (150.0, -100.0)),
 }
 
 
 def _block(folder: Path, name: str, heading: float, scale: float, centre) -> Path:
     rng = np.random.default_rng(len(name))
-    xy = np.asarray(centre) + rng.uniform(-250, 250, (1500, 2))
+    xy = np.asarray(centre) + rng.uniform(-600, 600, (2000, 2))
     xyz = np.column_stack([xy, surface(xy[:, 0], xy[:, 1], seed=0)])
     xyz[:, :2] += ORIGIN
     xyz += rng.normal(0, [0.15, 0.15, 0.3], xyz.shape)
@@ -53,7 +53,7 @@ def _error_m(result_json: Path, block: Path, name: str) -> float:
 @pytest.fixture(scope="module")
 def archive(tmp_path_factory):
     root = tmp_path_factory.mktemp("batch")
-    tiles = write_tiles(root / "tiles", density=0.12)
+    tiles = write_tiles(root / "tiles", tiles=(4, 4), density=0.05)  # 2 km square
     blocks = [_block(root, n, *t) for n, t in TRUTHS.items()]
     return root, blocks
 
@@ -68,7 +68,7 @@ def test_batch_on_a_cluster_finds_every_block_as_one_process_does(archive, tmp_p
         assert a.confident and b.confident
         e_many = _error_m(tmp_path / "many" / a.name / "RESULT.json", block, a.name)
         e_one = _error_m(tmp_path / "one" / b.name / "RESULT.json", block, b.name)
-        assert e_many < 1.0 and e_one < 1.0  # metres at the block centre (lidar 0.12 pt/m2)
+        assert e_many < 1.0 and e_one < 1.0  # metres at the block centre (lidar 0.05 pt/m2)
         np.testing.assert_allclose(a.T_ref_mov, b.T_ref_mov, atol=1e-6)
     rows = list(csv.DictReader((tmp_path / "many" / "summary.csv").open()))
     assert [r["block"] for r in rows] == ["north", "south"]
@@ -93,7 +93,7 @@ def test_batch_command_is_resumable_and_says_so_in_its_exit_code(archive, tmp_pa
     # a block that is not in the lidar (another surface): ran, not confident, exit code 3
     rng = np.random.default_rng(3)
     stranger = tmp_path / "stranger.xyz"
-    xy = rng.uniform(-250, 250, (1500, 2))
+    xy = rng.uniform(-600, 600, (2000, 2))
     np.savetxt(stranger, np.column_stack([xy, surface(xy[:, 0], xy[:, 1], seed=9)]))
     assert main(["batch", str(stranger), str(root / "tiles"), "--out", str(out), "-q"]) == 3
     assert not json.loads((out / "stranger" / "RESULT.json").read_text())["confident"]
@@ -109,3 +109,35 @@ def test_batch_bad_input_is_a_one_line_error(archive, tmp_path, capsys):
     assert main(["batch", str(blocks[0]), str(blocks[0]), str(root / "tiles"), "--out",
                  str(tmp_path / "o")]) == 2
     assert "share the folder" in capsys.readouterr().err
+
+
+def test_screening_windows_hold_every_block_whole():
+    from tiereg.mosaic import windows
+
+    extent, side, block = (0.0, 0.0, 9600.0, 9600.0), 2400.0, 340.0
+    boxes = windows(extent, side, side - block)
+    assert all(b[2] - b[0] == pytest.approx(side) for b in boxes)
+    assert boxes[0][:2] == (0.0, 0.0) and boxes[-1][2:] == pytest.approx((9600.0, 9600.0))
+    rng = np.random.default_rng(1)
+    for x, y in rng.uniform(0, 9600 - block, (500, 2)):  # a block's bounding square anywhere
+        assert any(b[0] <= x and x + block <= b[2] and b[1] <= y and y + block <= b[3]
+                   for b in boxes)
+
+
+def test_window_reference_is_the_base_grid_cut_and_reads_only_its_tiles(archive):
+    from tiereg.archive import TileIndex
+    from tiereg.distributed import prepare_archive_reference
+    from tiereg.mosaic import window_reference
+
+    root, _ = archive
+    ref = prepare_archive_reference(TileIndex.build(root / "tiles"), base_cell=20.0)
+    box = (-700.0, -300.0, -320.0, 100.0)  # local frame; meets 4 of the 16 tiles
+    win = window_reference(ref, box)
+    s, w = ref.base.spec, win.base.spec
+    r0, c0 = round((s.y0 - w.y0) / s.cell_size), round((w.x0 - s.x0) / s.cell_size)
+    np.testing.assert_array_equal(
+        win.base.count, ref.base.count[r0:r0 + w.shape[0], c0:c0 + w.shape[1]])
+    assert w.bounds[0] <= box[0] and w.bounds[2] >= box[2]
+    assert len(win.source.paths) == 4 and np.array_equal(win.origin, ref.origin)
+    pts = np.concatenate(list(win.local_chunks()))
+    assert pts[:, 0].min() >= box[0] - 1e-6 and pts[:, 0].max() <= box[2] + 1e-6

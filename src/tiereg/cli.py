@@ -433,8 +433,9 @@ def _cmd_batch(args: argparse.Namespace) -> int:
                          progress=_progress_factory(args.quiet))
     if not args.quiet:
         n_ok = sum(o.confident for o in done.outcomes)
-        print(f"{n_ok} of {len(done.outcomes)} blocks confident ({sum(o.skipped for o in "
-              f"done.outcomes)} done before); {done.summary_csv}, {done.overview_png}")
+        n_before = sum(o.skipped for o in done.outcomes)
+        print(f"{n_ok} of {len(done.outcomes)} blocks confident ({n_before} done before); "
+              f"{done.summary_csv}, {done.overview_png}")
     return EXIT_OK if done.all_confident else EXIT_NOT_CONFIDENT
 
 

@@ -172,11 +172,16 @@ def find_in_mosaic(moving: Any, ref: Reference, *, client: Any = None,
     tie_cell = cell_size_from_density(local)
     diag = float(np.hypot(*(local[:, :2].max(axis=0) - local[:, :2].min(axis=0))))
     (x0, y0, x1, y1) = ref.base.spec.bounds
+    width = max(x1 - x0, y1 - y0)
+    if MAX_REFERENCE_CELLS * tie_cell * sigma_range[0] >= width:
+        # the whole reference is one search grid at the finest level: register searches it all
+        result = submit_all(client, _register, [ref], moving=moving, options=options)[0]
+        return MosaicResult(result, 1, (), (result.confident,), 0.0, time.perf_counter() - t0)
     cands: list[Candidate] = []
     n_windows = 0
     for lo, hi in octaves(sigma_range):
         side = SCREEN_LEVEL * MAX_REFERENCE_CELLS * tie_cell * lo  # one search grid at ``lo``
-        if side >= max(x1 - x0, y1 - y0):  # the whole reference is one search grid
+        if side >= width:
             boxes = [(x0, y0, x1, y1)]
         else:
             boxes = windows((x0, y0, x1, y1), side, max(side - diag * hi, side / 4))
