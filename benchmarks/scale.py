@@ -105,16 +105,18 @@ def phase_grid(args, out: dict) -> None:
     base = archive_base_cell(TileIndex.build(paths))
     part = paths[:80]  # about 50 million points
     g = out.setdefault("grid", {})
-    g["decode_all_2proc"] = decode_baseline(paths, 2)
-    print("decode", g["decode_all_2proc"], flush=True)
-    for w in args.workers:
-        g[f"grid_all_{w}w"] = grid_run(paths, w, base)
-        print(g[f"grid_all_{w}w"], flush=True)
+    runs = {
+        "decode_all_2proc": lambda: decode_baseline(paths, 2),
+        "grid_all_2w": lambda: grid_run(paths, 2, base),
+        "grid_all_1w": lambda: grid_run(paths, 1, base),
+        "grid_50M_2w": lambda: grid_run(part, 2, base),
+        "decode_50M_2proc": lambda: decode_baseline(part, 2),
+        "scheduler": lambda: scheduler_overhead(2),
+    }
+    for name in args.runs or list(runs):
+        g[name] = runs[name]()
+        print(name, g[name], flush=True)
         _save(out)
-    g["grid_50M_2w"] = grid_run(part, 2, base)
-    g["decode_50M_2proc"] = decode_baseline(part, 2)
-    g["scheduler"] = scheduler_overhead(2)
-    _save(out)
 
 
 def phase_mosaic(args, out: dict) -> None:
@@ -178,8 +180,10 @@ def _save(out: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phase", choices=("grid", "mosaic", "all"), default="all")
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--workers", type=int, nargs="+", default=[2], help="mosaic phase")
     ap.add_argument("--blocks", choices=("dev", "held-out", "all"), default="all")
+    ap.add_argument("--runs", nargs="+", help="grid phase: these runs only (decode_all_2proc, "
+                    "grid_all_2w, grid_all_1w, grid_50M_2w, decode_50M_2proc, scheduler)")
     args = ap.parse_args()
     import scale_data
 

@@ -43,8 +43,20 @@ def _grid_lines(g: dict) -> list[str]:
     return out
 
 
+def _search_grids(block: str, width_m: float = 9600.0) -> float:
+    """The mosaic's width in search grids of the block: 320 of its tie cells, in metres."""
+    from tiereg.grid import cell_size_from_density
+
+    work = Path(__file__).parent / "work" / "scale" / "blocks"
+    xyz = np.loadtxt(work / f"{block}.xyz")
+    scale = json.loads((work / f"{block}.truth.json").read_text())["scale_model_per_m"]
+    return width_m / (320 * cell_size_from_density(xyz - xyz.mean(axis=0)) / scale)
+
+
 def _mosaic_lines(m: dict) -> list[str]:
     rows = list(m.values())
+    for r in rows:
+        r["mosaic_search_grids"] = _search_grids(r["block"])
     out = ["## Mosaic search (20 blocks, 2 workers, after the overview is built)", "",
            "| block | half | found (error m) | confident | windows | wall s | CPU s | "
            "mosaic / search grid |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]

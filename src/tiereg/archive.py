@@ -108,6 +108,15 @@ def _selection():
     return s.XY_RETURNS_CHANNEL | s.Z | s.CLASSIFICATION | s.FLAGS
 
 
+def _one_thread_backend():
+    """lazrs on one thread: a tile is a task, and the tasks are the parallelism (a parallel
+    decoder's threads would compete with the other tasks for the cores)."""
+    import laspy
+
+    b = laspy.LazBackend.Lazrs
+    return b if b.is_available() else _backend()
+
+
 def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = None,
                 box: Box | None = None, resolution: float | None = None,
                 chunk_size: int = DEFAULT_CHUNK) -> Iterator[np.ndarray]:
@@ -131,7 +140,7 @@ def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = Non
                 chunks: Iterator = iter([records])
                 yield from _filtered(chunks, keep, box)
             return
-        with laspy.open(path, mode="r", laz_backend=_backend(),
+        with laspy.open(path, mode="r", laz_backend=_one_thread_backend(),
                         decompression_selection=_selection()) as reader:
             yield from _filtered(reader.chunk_iterator(chunk_size), keep, box)
     except _read_errors() as exc:
