@@ -83,9 +83,11 @@ def _mosaic_lines(m: dict) -> list[str]:
 
 def main() -> None:
     data = json.loads((RESULTS / "scale.json").read_text())
-    extra = RESULTS / "scale-grid.json"  # a grid phase run beside a mosaic phase
-    if extra.is_file():
-        data["grid"] = {**json.loads(extra.read_text()).get("grid", {}), **data.get("grid", {})}
+    for extra in sorted(RESULTS.glob("scale-*.json")):  # phases run side by side
+        more = json.loads(extra.read_text())
+        for key in ("grid", "mosaic"):
+            data[key] = {**data.get(key, {}), **more.get(key, {})}
+        data = {k: v for k, v in data.items() if v}
     lines = ["# Scale-out benchmark", "",
              "Made by `python benchmarks/scale.py` (data: `benchmarks/scale_data.py`; this page: "
              "`benchmarks/scale_report.py`). Archive: 256 LAZ tiles of 600 m (a 9.6 km square "

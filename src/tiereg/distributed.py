@@ -82,7 +82,7 @@ def cluster(*, workers: int | None = None, scheduler: str | None = None,
     if not (isinstance(workers, int) and workers >= 1):
         raise InputError(f"--workers must be a whole number of at least 1, got {workers}")
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                      dashboard_address=None, silence_logs=logging.ERROR) as local, \
+                      dashboard_address=":0", silence_logs=logging.ERROR) as local, \
             Client(local) as client:
         yield client
 
