@@ -129,17 +129,18 @@ def grid_tile(tile: Tile, spec: GridSpec, *, stats: Sequence[str], origin: np.nd
     acc = GridAccumulator(wspec, stats=stats, median_sample=median_sample, seed=seed)
     keep = (lambda r: surface_mask(r, first_only)) if surface else None
     cols, lost = spec.shape[1], 0
-    for xyz in tile_chunks(tile, keep=keep):
+    for xyz in tile_chunks(tile, keep=keep):  # a fresh array: changed in place
         if origin is not None:
-            xyz = xyz - origin
+            xyz -= origin
         idx, inside = spec.cell_index(xyz[:, 0], xyz[:, 1])  # the whole grid's arithmetic
-        idx, z = idx[inside], xyz[inside, 2]
         row, col = np.divmod(idx, cols)
-        ok = (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
-        lost += int((~ok).sum())
+        ok = inside & (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
+        lost += int((inside & ~ok).sum())
         # each point at its cell's centre in the window: the window finds the same cell
-        acc.add(np.column_stack([wspec.x0 + (col[ok] - c0 + 0.5) * c,
-                                 wspec.y0 - (row[ok] - r0 + 0.5) * c, z[ok]]))
+        xyz = xyz[ok]
+        xyz[:, 0] = wspec.x0 + (col[ok] - c0 + 0.5) * c
+        xyz[:, 1] = wspec.y0 - (row[ok] - r0 + 0.5) * c
+        acc.add(xyz)
     if lost:
         raise InputError(f"{tile.path}: {lost} points lie outside the tile's header bounds; the "
                          "header is wrong - re-export the tile")
