@@ -57,7 +57,8 @@ def _mosaic_lines(m: dict) -> list[str]:
     rows = list(m.values())
     for r in rows:
         r["mosaic_search_grids"] = _search_grids(r["block"])
-    out = ["## Mosaic search (20 blocks, 2 workers, after the overview is built)", "",
+    out = [f"## Mosaic search ({len(rows)} of the 20 blocks measured, 2 workers, after the "
+           "overview is built)", "",
            "| block | half | found (error m) | confident | windows | wall s | CPU s | "
            "mosaic / search grid |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in sorted(rows, key=lambda r: r["block"]):
