@@ -11,7 +11,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	$(BIN)/python -m pip install --quiet -e '.[test,bench,distributed]'
 	rm -f $(VENV)/.installed-* && touch $@
 
 install: $(STAMP)
@@ -43,6 +43,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/orientation.py
 	$(BIN)/python benchmarks/no_overlap_power.py
 	$(BIN)/python benchmarks/no_overlap_power.py --overlap 0.6 0.7
+	cd benchmarks && ../$(BIN)/python scale.py && ../$(BIN)/python scale_report.py
 
 bench-quick: install
 	$(BIN)/python benchmarks/coarse.py --quick

@@ -48,7 +48,11 @@ EXAMPLES = {
   tiereg apply matrix.txt dsm.tif dsm_moved.tif      (16 numbers: PDAL/CloudCompare matrix)""",
     "grid": """examples:
   tiereg grid lidar.laz dsm.tif --cell-size 1 --stat max
-  tiereg grid 'tiles/*.laz' dem.tif --cell-size 2 --stat min""",
+  tiereg grid 'tiles/*.laz' dem.tif --cell-size 2 --stat min
+  tiereg grid archive/ dsm.tif --cell-size 1 --workers 2    (a tile a task on 2 processes)""",
+    "batch": """examples:
+  tiereg batch blocks/*.txt 'archive/*.laz' --out results/ --workers 2
+  tiereg batch a.txt b.txt archive/ --out results/ --scheduler tcp://10.0.0.5:8786 --report""",
     "info": """examples:
   tiereg info lidar.laz
   tiereg info sparse/0 --json""",
@@ -168,6 +172,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cell size in file units (default: about 4 points per cell)")
     p.add_argument("--stat", choices=("mean", "min", "max", "median", "count"), default="mean")
     p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
+    _add_cluster(p)
+
+    p = add("batch", "Register many BLOCKS (tie points) against one lidar archive, each found "
+                     "anywhere in it.")
+    p.add_argument("paths", metavar="BLOCKS... REFERENCE", nargs="+", help="the blocks' tie "
+                   "points, then the archive: a folder or quoted glob of LAS/LAZ/COPC tiles")
+    p.add_argument("--out", required=True, metavar="DIR", help="results: a folder per block "
+                   "(RESULT.json), summary.csv, overview.png; blocks done there are skipped")
+    p.add_argument("--report", action="store_true", help="a report per block")
+    p.add_argument("--scale-range", type=float, nargs=2, default=(0.25, 4.0), metavar=("LO",
+                   "HI"), help="the blocks' scale, reference units per model unit (default "
+                   "0.25 4); a narrower range searches fewer windows")
+    _add_cluster(p)
 
     p = add("info", "Describe a point file, tile set or DSM: format, count, extent, CRS, density.")
     p.add_argument("input", metavar="FILE", nargs="+")
@@ -196,6 +213,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=0)
     return parser
+
+
+def _add_cluster(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=int, metavar="N", help="a local Dask cluster of N processes")
+    g.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler "
+                   "(tcp://host:8786); its workers must see the same files")
 
 
 def _setup_logging(args: argparse.Namespace) -> None:
@@ -368,12 +392,40 @@ def _cmd_apply(args: argparse.Namespace) -> int:
 def _cmd_grid(args: argparse.Namespace) -> int:
     from .files import grid_to_geotiff
 
-    spec = grid_to_geotiff(args.input, args.output, cell_size=args.cell_size, stat=args.stat,
-                           format=args.format, progress=_progress_factory(args.quiet))
+    if args.workers is not None or args.scheduler is not None:
+        from .distributed import cluster, grid_archive, index_cache_beside
+
+        with cluster(workers=args.workers, scheduler=args.scheduler) as client:
+            spec = grid_archive(args.input, args.output, cell_size=args.cell_size,
+                                stat=args.stat, client=client, progress=_progress_factory(
+                                    args.quiet), cache=index_cache_beside(args.output))
+    else:
+        spec = grid_to_geotiff(args.input, args.output, cell_size=args.cell_size,
+                               stat=args.stat, format=args.format,
+                               progress=_progress_factory(args.quiet))
     if not args.quiet:
         print(f"wrote {args.output}: {spec.shape[0]} rows x {spec.shape[1]} cols, "
               f"cell {spec.cell_size:g}")
     return EXIT_OK
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from .batch import run_batch
+    from .distributed import cluster
+
+    if len(args.paths) < 2:
+        raise InputError("give at least one block and then the archive (a folder or glob)")
+    blocks, reference = args.paths[:-1], args.paths[-1]
+    with cluster(workers=args.workers, scheduler=args.scheduler) as client:
+        done = run_batch(blocks, reference, args.out, client=client, report=args.report,
+                         sigma_range=tuple(args.scale_range),
+                         progress=_progress_factory(args.quiet))
+    if not args.quiet:
+        n_ok = sum(o.confident for o in done.outcomes)
+        n_before = sum(o.skipped for o in done.outcomes)
+        print(f"{n_ok} of {len(done.outcomes)} blocks confident ({n_before} done before); "
+              f"{done.summary_csv}, {done.overview_png}")
+    return EXIT_OK if done.all_confident else EXIT_NOT_CONFIDENT
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -457,7 +509,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_report,
             "simulate": _cmd_simulate, "apply": _cmd_apply, "grid": _cmd_grid,
-            "info": _cmd_info, "demo": _cmd_demo}
+            "batch": _cmd_batch, "info": _cmd_info, "demo": _cmd_demo}
 
 
 class _Terminated(BaseException):
