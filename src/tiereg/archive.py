@@ -27,8 +27,8 @@ import numpy as np
 from .crs import crs_label, same_crs
 from .errors import FormatError, InputError
 from .io.base import DEFAULT_CHUNK, SourceInfo, write_text_atomic
-from .io.las import LasSource, _backend, _crs_wkt, _open_header, _read_errors, _short
-from .reference import NOISE_CLASSES
+from .io.las import LasSource, laz_backend, crs_wkt_of, open_header, read_errors, short_error
+from .reference import surface_mask
 
 log = logging.getLogger(__name__)
 
@@ -71,15 +71,6 @@ class Tile:
         return float(min(1.0, max(ix, 0.0) * max(iy, 0.0) / (w * h)))
 
 
-def surface_mask(records, first_only: bool) -> np.ndarray:
-    """The points of a laspy record chunk that describe the surface, as
-    :mod:`tiereg.reference` grids them: not classed as noise (classes 7, 18), not withheld, and
-    with ``first_only`` first returns only."""
-    noise = np.isin(np.asarray(records.classification), NOISE_CLASSES)
-    ok = ~noise & ~np.asarray(records.withheld, dtype=bool)
-    return ok & (np.asarray(records.return_number) <= 1) if first_only else ok
-
-
 def _xyz(records) -> np.ndarray:
     xyz = np.empty((len(records), 3))
     xyz[:, 0] = records.x
@@ -93,11 +84,11 @@ def _is_copc(header) -> bool:
 
 
 def _read_tile(path: Path) -> Tile:
-    header = _open_header(path)
+    header = open_header(path)
     st = path.stat()
     return Tile(str(path), st.st_size, st.st_mtime_ns, int(header.point_count),
                 tuple(map(float, header.mins)), tuple(map(float, header.maxs)),  # type: ignore
-                _crs_wkt(header), _is_copc(header), int(header.point_format.id))
+                crs_wkt_of(header), _is_copc(header), int(header.point_format.id))
 
 
 def _selection():
@@ -114,7 +105,7 @@ def _one_thread_backend():
     import laspy
 
     b = laspy.LazBackend.Lazrs
-    return b if b.is_available() else _backend()
+    return b if b.is_available() else laz_backend()
 
 
 def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = None,
@@ -143,8 +134,8 @@ def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = Non
         with laspy.open(path, mode="r", laz_backend=_one_thread_backend(),
                         decompression_selection=_selection()) as reader:
             yield from _filtered(reader.chunk_iterator(chunk_size), keep, box)
-    except _read_errors() as exc:
-        raise FormatError(f"{path}: reading the points failed ({_short(exc)}); the file is "
+    except read_errors() as exc:
+        raise FormatError(f"{path}: reading the points failed ({short_error(exc)}); the file is "
                           "corrupt or truncated - re-export or re-download it") from None
 
 
@@ -182,9 +173,9 @@ class TileIndex:
         """Index tiles (files, folders of ``.las``/``.laz``, globs); headers already in
         ``cache`` (same path, size and modification time) are not read again, and the cache is
         rewritten when anything was read."""
-        from .io import _expand
+        from .io import expand_paths
 
-        files = [Path(os.path.abspath(p)) for p in _expand(paths)]
+        files = [Path(os.path.abspath(p)) for p in expand_paths(paths)]
         known = _load_cache(cache)
         tiles, read = [], 0
         for f in files:
@@ -281,17 +272,22 @@ class ArchiveSource(LasSource):
     @property
     def headers(self) -> list:  # type: ignore[override]
         """The headers of the window's tiles, read when asked (writing LAS like this source)."""
-        return [_open_header(p) for p in self.paths[:1]]
+        return [open_header(p) for p in self.paths[:1]]
 
     def chunks(self, chunk_size: int = DEFAULT_CHUNK, *,
-               keep: Callable[[object], np.ndarray] | None = None) -> Iterator[np.ndarray]:
-        for tile in self.tiles:
-            yield from tile_chunks(tile, keep=keep, box=self.box, chunk_size=chunk_size)
+               keep: Callable[[object], np.ndarray] | None = None,
+               box: Box | None = None) -> Iterator[np.ndarray]:
+        """The points of the tiles that meet the window (and ``box``), clipped to the window."""
+        both = self.box if box is None else box if self.box is None else (
+            max(box[0], self.box[0]), max(box[1], self.box[1]),
+            min(box[2], self.box[2]), min(box[3], self.box[3]))
+        for tile in (self.index.tiles_near(both) if both is not None else self.tiles):
+            yield from tile_chunks(tile, keep=keep, box=both, chunk_size=chunk_size)
 
-    def _records(self, chunk_size: int) -> Iterator:
+    def _records(self, chunk_size: int, *, box: Box | None = None) -> Iterator:
         if self.box is not None:
             raise InputError("a window of an archive cannot be rewritten; apply to its tiles")
-        yield from super()._records(chunk_size)
+        yield from super()._records(chunk_size, box=box)
 
     def __getstate__(self) -> dict:
         return {"index": self.index, "box": self.box}

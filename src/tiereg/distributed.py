@@ -18,7 +18,6 @@ answers).
 from __future__ import annotations
 
 import contextlib
-import copyreg
 import logging
 import math
 import os
@@ -29,29 +28,15 @@ from typing import Any
 
 import numpy as np
 
-from .archive import Tile, TileIndex, surface_mask, tile_chunks
+from .archive import Tile, TileIndex, tile_chunks
 from .errors import InputError
 from .grid import Grid, GridAccumulator, GridSpec, median_sample_for, nice_size
 from .progress import ProgressFactory, no_progress
-from .reference import MAX_BASE_CELLS, Reference
+from .reference import Reference, reference_spec, surface_mask
 
 log = logging.getLogger(__name__)
 
 IN_FLIGHT_PER_WORKER = 4  # tile tasks submitted ahead per worker: bounds the workers' memory
-
-
-def _rebuild_reference(source, origin, base, first_returns_only, source_args) -> Reference:
-    return Reference(source, origin, base, first_returns_only, source_args=source_args)
-
-
-def _reduce_reference(ref: Reference):
-    """A :class:`Reference` travels to workers without its lock and its cache of coarser
-    grids (each process makes its own)."""
-    return _rebuild_reference, (ref.source, ref.origin, ref.base, ref.first_returns_only,
-                                ref.source_args)
-
-
-copyreg.pickle(Reference, _reduce_reference)
 
 
 @contextlib.contextmanager
@@ -227,21 +212,6 @@ def _ordered(todo: list[tuple[int, Tile]], spec: GridSpec, options: dict,
         yield part
 
 
-def reference_spec(index: TileIndex, base_cell: float) -> tuple[np.ndarray, GridSpec]:
-    """The origin and base grid of a reference over the archive, as
-    :func:`~tiereg.reference.prepare_reference` makes them from the same bounds."""
-    lo, hi = (np.asarray(b, dtype=np.float64) for b in index.bounds)
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise InputError("the archive's header bounds are not finite; a tile is corrupt - "
-                         "re-export it")
-    origin = np.round((lo + hi) / 2)
-    lo, hi = lo - origin, hi - origin
-    cells = ((hi[0] - lo[0]) / base_cell + 2) * ((hi[1] - lo[1]) / base_cell + 2)
-    if cells > MAX_BASE_CELLS:  # as prepare_reference: a coarser base, still one pass
-        base_cell *= math.ceil(math.sqrt(cells / MAX_BASE_CELLS))
-    return origin, GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], base_cell)
-
-
 def prepare_archive_reference(index: TileIndex, *, base_cell: float, first_returns: bool = True,
                               client: Any = None,
                               progress: ProgressFactory | None = None) -> Reference:
@@ -250,7 +220,11 @@ def prepare_archive_reference(index: TileIndex, *, base_cell: float, first_retur
     withheld points left out, first returns only where the tiles record returns)."""
     if index.count == 0:
         raise InputError("the archive's tiles hold no points; give tiles with points in them")
-    origin, spec = reference_spec(index, base_cell)
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in index.bounds)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise InputError("the archive's header bounds are not finite; a tile is corrupt - "
+                         "re-export it")
+    origin, spec = reference_spec(lo, hi, base_cell)
     opts = dict(stats=("mean",), origin=origin, surface=True, client=client, progress=progress,
                 crs_wkt=index.crs_wkt)
     grid = grid_tiles(index.tiles, spec, first_only=first_returns, **opts)

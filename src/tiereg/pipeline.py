@@ -20,12 +20,11 @@ from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
 from .coarse.scoring import tie_cell_for
 from .coarse.similarity import register_similarity
-from .crs import crs_label, crs_units, is_geographic
+from .crs import crs_label, crs_units
 from .errors import InputError
 from .fine import METHODS as FINE_METHODS
 from .fine import FineResult, register_fine
-from .io import PointSource, open_points
-from .io.base import ArraySource
+from .io import PointSource, as_point_source
 from .level import (
     MIN_CAMERA_TILT_DEG,
     Vertical,
@@ -39,7 +38,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference, prepare_reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
-from .verdict import Verdict, judge_refined
+from .verdict import MAX_UNEXPLAINED, Verdict, judge_refined
 
 MIN_MOVING_POINTS = 30
 # the quality heights: local planes of the lidar within this many spacings of a tie point; half a
@@ -149,18 +148,7 @@ class RegistrationResult:
 
 
 def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> PointSource:
-    if isinstance(points, PointSource):
-        return points
-    if isinstance(points, PointSet):
-        return ArraySource(points)
-    if isinstance(points, np.ndarray):
-        return ArraySource(PointSet(points, source=f"<{role} array>"))
-    source = open_points(points, format=fmt)
-    if is_geographic(source.info.crs_wkt):  # degrees: cells, shifts and scales are meaningless
-        raise InputError(f"{source.info.path}: the {role} coordinates are longitude and latitude "
-                         f"({crs_label(source.info.crs_wkt)}); reproject to a projected CRS "
-                         "(metres or feet, e.g. UTM) first")
-    return source
+    return as_point_source(points, role=role, format=fmt)
 
 
 def _scatter(values: np.ndarray, where: np.ndarray) -> np.ndarray:
@@ -197,7 +185,7 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
         vertical = vertical_from_cameras(model.camera_centres, model.viewing_directions, xyz)
     if mode == "cameras" and vertical is None:
         raise InputError(f"{source.info.path}: no cameras that look down in this model; use "
-                         "--level points or give a COLMAP/Bundler model with its images")
+                         "`level` points, or give a COLMAP/Bundler model with its images")
     if vertical is not None:  # the sign of the viewing direction decides, upside down included
         return vertical if vertical.off_up_deg > MIN_CAMERA_TILT_DEG else None
     if mode in ("auto", "points"):  # both senses, whatever the tilt: the reference decides
@@ -221,7 +209,7 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
     reasons = list(best.reasons)
     if vertical.ambiguous:
         reasons.append("the vertical of the moving model is ambiguous (no dominant plane); give "
-                       "a model with its cameras, or a starting pose with --initial")
+                       "a model with its cameras, or a starting pose (`initial`)")
     info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
             "sign_known": vertical.sign_known, "flatness": vertical.flatness,
             "tried": len(results), "confident_answers": sum(r.confident for r in results),
@@ -400,7 +388,7 @@ def register(
         cell_size = cell_size or tie_cell  # the moving points are in the reference frame
         before = _height_stats(T_local.apply(mov_local), ref.surface())
         confident, confidence = before.overlap_fraction > 0.3, 0.0
-        reasons.append("no coarse registration was asked for (--coarse none)")
+        reasons.append("no coarse registration was asked for (`coarse` none)")
     else:
         if coarse == "pomf":  # level data at the reference's scale: a cell in its units
             grid = _translation_grid(ref, cell_size or tie_cell, mov_local[keep])
@@ -437,8 +425,14 @@ def register(
                         f"{', '.join(map(str, rows[:5]))}{' ...' if len(rows) > 5 else ''}, "
                         "from 0) were left out of the estimation: check them (a nodata height "
                         "such as -9999?)")
-    fine_note = "not asked for (--fine none)"
-    if fine != "none":
+    fine_note = "not asked for (`fine` none)"
+    # the fine stage polishes a pose that explains the heights, confident or not (a right pose
+    # metres off in height is confident only after it); it cannot make a wrong one right
+    hopeless = (verdict.best.unexplained > MAX_UNEXPLAINED if verdict is not None
+                else coarse == "pomf" and not confident)
+    if fine != "none" and hopeless:
+        fine_note = "skipped: no pose found explains the tie points' heights"
+    elif fine != "none":
         fine_result = register_fine(T_local.apply(mov_local[keep]), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
         if fine_result.refused:
@@ -448,7 +442,7 @@ def register(
             start = "starting pose" if coarse == "none" else "coarse answer"
             advice = ("check the inputs (noise points in the lidar not classed as noise, a wrong "
                       "unit or CRS)" if fine_result.contradicts_coarse else
-                      "give a closer --initial, or let the coarse stage find the pose"
+                      "give a closer starting pose (`initial`), or let the coarse stage find it"
                       if coarse == "none" else "check the inputs")
             verb = "contradicts" if fine_result.contradicts_coarse else "could not confirm"
             reasons.append(f"the fine stage {verb} the {start}: {fine_result.refused}; {advice}")

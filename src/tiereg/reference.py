@@ -99,7 +99,8 @@ class Reference:
             for dx in (-1, 0, 1):
                 near[ix[:, 1] + dy, ix[:, 0] + dx] = True
         kept = []
-        for chunk in self.local_chunks():
+        box = (*(lo + self.origin[:2]), *(lo + radius * shape + self.origin[:2]))
+        for chunk in self.local_chunks(box=box):
             jx = np.floor((chunk[:, 0] - lo[0]) / radius).astype(np.int64)
             jy = np.floor((chunk[:, 1] - lo[1]) / radius).astype(np.int64)
             inside = (jx >= 0) & (jx < shape[0]) & (jy >= 0) & (jy < shape[1])
@@ -109,25 +110,56 @@ class Reference:
                 kept.append(chunk[sel])
         return np.concatenate(kept) if kept else np.empty((0, 3))
 
-    def local_chunks(self) -> Iterator[np.ndarray]:
+    def local_chunks(self, *, box: tuple[float, float, float, float] | None = None
+                     ) -> Iterator[np.ndarray]:
         """The reference points again, chunk by chunk, in local coordinates: those the base grid
-        was made from (:func:`_chunks`)."""
-        for chunk in _chunks(self.source, self.first_returns_only):
+        was made from (:func:`_chunks`); with ``box`` (file coordinates) at least those inside
+        it, from the tiles that meet it only."""
+        for chunk in _chunks(self.source, self.first_returns_only, box):
             yield chunk - self.origin
 
+    def __reduce__(self):
+        """Pickled (to another process) without its lock and its caches, which each process
+        makes anew."""
+        return (_rebuilt, (self.source, self.origin, self.base, self.first_returns_only,
+                           self.source_args))
 
-def _chunks(source: PointSource, first_only: bool) -> Iterator[np.ndarray]:
-    """The points that describe the surface: of a LAS/LAZ file, not those classed as noise
-    (:data:`NOISE_CLASSES`) or withheld, and with ``first_only`` first returns only."""
+
+def _rebuilt(source, origin, base, first_returns_only, source_args) -> Reference:
+    return Reference(source, origin, base, first_returns_only, source_args=source_args)
+
+
+def surface_mask(records, first_only: bool) -> np.ndarray:
+    """The points of a laspy record chunk that describe the surface: not classed as noise
+    (:data:`NOISE_CLASSES`), not withheld, and with ``first_only`` first returns only."""
+    noise = np.isin(np.asarray(records.classification), NOISE_CLASSES)
+    ok = ~noise & ~np.asarray(records.withheld, dtype=bool)
+    return ok & (np.asarray(records.return_number) <= 1) if first_only else ok
+
+
+def _chunks(source: PointSource, first_only: bool,
+            box: tuple[float, float, float, float] | None = None) -> Iterator[np.ndarray]:
+    """The points that describe the surface (:func:`surface_mask` for LAS/LAZ); with ``box``
+    (file coordinates), at least those inside it, read from the tiles whose header bounds meet
+    it only."""
     if not isinstance(source, LasSource):
         return source.chunks()
+    return source.chunks(keep=lambda r: surface_mask(r, first_only),  # type: ignore[call-arg]
+                         box=box)
 
-    def keep(r) -> np.ndarray:
-        noise = np.isin(np.asarray(r.classification), NOISE_CLASSES)
-        ok = ~noise & ~np.asarray(r.withheld, dtype=bool)
-        return ok & (np.asarray(r.return_number) <= 1) if first_only else ok
 
-    return source.chunks(keep=keep)  # type: ignore[call-arg]
+def reference_spec(lo: np.ndarray, hi: np.ndarray,
+                   base_cell: float) -> tuple[np.ndarray, GridSpec]:
+    """The origin (rounded centre) and the base grid (local coordinates) of a reference whose
+    bounds are ``lo``, ``hi`` (file coordinates): cells of ``base_cell``, or coarser where that
+    would exceed :data:`MAX_BASE_SIDE` cells a side."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    origin = np.round((lo + hi) / 2)
+    lo, hi = lo - origin, hi - origin
+    side = max(hi[0] - lo[0], hi[1] - lo[1]) / base_cell + 2
+    if side > MAX_BASE_SIDE:  # a finer base was asked for than memory allows: still one pass
+        base_cell *= math.ceil(side / MAX_BASE_SIDE)
+    return origin, GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], base_cell)
 
 
 def aggregate(grid: Grid, k: int, *, stats: tuple[str, ...] = ("mean",)) -> Grid:
@@ -204,14 +236,7 @@ def prepare_reference(
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise InputError(f"{info.path}: the reference bounds are not finite; the file is "
                          "corrupt - re-export it")
-    origin = np.round((lo + hi) / 2)
-    lo, hi = lo - origin, hi - origin
-    if base_cell is None:
-        base_cell = base_cell_for(source)
-    side = max(hi[0] - lo[0], hi[1] - lo[1]) / base_cell + 2
-    if side > MAX_BASE_SIDE:  # a finer base was asked for than memory allows: still one pass
-        base_cell *= math.ceil(side / MAX_BASE_SIDE)
-    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], base_cell)
+    origin, spec = reference_spec(lo, hi, base_cell or base_cell_for(source))
     use_first = first_returns and isinstance(source, LasSource)
     grid = _grid(source, spec, origin, use_first, progress)
     if use_first and not grid.mask.any():  # no return numbers recorded: use all points

@@ -206,8 +206,6 @@ def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[int, ...],
         reasons.append(f"the tie points' heights disagree with the reference surface at the "
                        f"found pose (residual spread {chosen.unexplained:.2f} of the "
                        f"surface's own, more than {MAX_UNEXPLAINED:g})")
-    if not chosen.converged:
-        reasons.append("the refined fit of the found pose did not converge")
     distinct = min(z_min / (2 * MIN_Z), 1.0) if rivals else 0.0
     fit = 1.0 - chosen.unexplained / (2 * MAX_UNEXPLAINED)
     confidence = float(np.clip(min(distinct, fit), 0.0, 1.0))

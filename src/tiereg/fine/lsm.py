@@ -45,6 +45,10 @@ MAX_SLOPE = 1.0  # rise over run: 45 degrees
 SURFACE_POINTS = 8  # lidar neighbours of a surface patch (lsm)
 MIN_LIDAR = 50  # fewer lidar points near the tie points than this: no surface model
 MAX_MOVE_CELLS = 2.0  # a fine answer moving the block farther than this (RMS) is refused
+# the fine stage's outer passes (a fresh lidar selection and linearisation each): from a start
+# 5 m, 1 degree and 0.5 % off, one pass stopped 0.07-1.55 m short (benchmarks/results/fine-far.md)
+MAX_PASSES = 10
+SETTLED_SD = 0.25
 _MODEL = {"lsm": "surface", "planes": "planes"}  # the observation model after the vertical one
 
 
@@ -165,22 +169,48 @@ def register_fine(
         fit = solve_helmert(start.apply(placed), observe, hold_displacement=hold)
         fit = replace(fit, T=fit.T @ start)
     if method in ("lsm", "planes") and model != "vertical" and fit.n_observed >= 10:
-        # again from there, with the lidar right around the tie points only: far from the answer
-        # the nearest point in 3-D may lie beside a tie point (up a slope, on the next crown);
-        # planes: segmented again around where the tie points now are
-        q = fit.T.apply(placed)
-        close = _within(lidar, q[:, :2], 2.5 * reference.spacing)
-        if len(close) >= MIN_LIDAR:
-            near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
-                    else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True))
-            again = solve_helmert(q, near, hold_displacement=hold)
-            if again.n_observed >= 10:
-                fit = replace(again, T=again.T @ fit.T)
+        fit = _settle(fit, placed, lidar, reference, method=method, hold=hold)
     refused, contradicts = _refusal(fit, placed, observe, start_spread,
                                     MAX_MOVE_CELLS * cell_size,
                                     require_convergence=method in ("lsm", "planes"))
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
                       contradicts, lidar)
+
+
+def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: Reference, *,
+            method: str, hold: float) -> HelmertFit:
+    """Again from where the fit ended, until the pose stops moving: each pass re-selects the
+    lidar right around the tie points (far from the answer the nearest point in 3-D may lie
+    beside a tie point, up a slope or on the next crown; ``planes``: segmented again around
+    where the tie points now are) and re-linearises there. Settled when a pass moves the block
+    (RMS) by less than :data:`SETTLED_SD` of the fit's own standard deviation of that
+    displacement (a fresh selection of neighbours moves a settled fit by a few centimetres, a
+    fifth to a quarter of it, back and forth); a fit still moving after :data:`MAX_PASSES`
+    passes has not converged, and its precision means nothing."""
+    for _ in range(MAX_PASSES):
+        q = fit.T.apply(placed)
+        close = _within(lidar, q[:, :2], 2.5 * reference.spacing)
+        if len(close) < MIN_LIDAR:
+            return fit
+        near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
+                else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True))
+        again = solve_helmert(q, near, hold_displacement=hold)
+        if again.n_observed < 10:
+            return fit
+        moved = float(np.sqrt(np.mean(np.sum((again.T.apply(q) - q) ** 2, axis=1))))
+        fit = replace(again, T=again.T @ fit.T)
+        if moved < max(hold / 1000, SETTLED_SD * _displacement_sd(again, q)):
+            return fit
+    return replace(fit, converged=False)
+
+
+def _displacement_sd(fit: HelmertFit, q: np.ndarray) -> float:
+    """One standard deviation of the fit's displacement of the block (RMS over its points):
+    the translation's and, at the points' mean distance from the centre, the rotations' and
+    the scale's; held parameters count nothing."""
+    sd = np.nan_to_num(fit.sigma, nan=0.0)
+    radius = float(np.sqrt(np.mean(np.sum((q - fit.centre) ** 2, axis=1))))
+    return float(np.sqrt(np.sum(sd[4:] ** 2) + np.sum((sd[:4] * radius) ** 2)))
 
 
 def _within(points: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:

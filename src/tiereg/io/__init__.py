@@ -213,7 +213,7 @@ def check_not_input(out: str | os.PathLike[str], *inputs: object) -> None:
                                      "choose another output name")
 
 
-def _expand(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
+def expand_paths(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
     """Turn a path, a glob pattern, a directory of tiles or a list of these into files."""
     if not _is_paths(paths):
         raise InputError(_not_points(paths, ""))
@@ -253,7 +253,7 @@ def open_points(
     Nothing but headers is read here; the points come through ``source.chunks()`` or
     ``source.read()``.
     """
-    files = _expand(paths)
+    files = expand_paths(paths)
     if len(files) > 1:
         fmts = {detect_format(f, format=format) for f in files}
         if fmts != {"las"}:

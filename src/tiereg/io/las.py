@@ -35,7 +35,13 @@ def _laspy():  # laspy is a hard dependency; imported lazily to keep `import tie
     return laspy
 
 
-def _backend():
+def _meets(header, box: tuple[float, float, float, float]) -> bool:
+    """Whether a file's header bounds meet ``box`` in plan."""
+    (x0, y0, _), (x1, y1, _) = header.mins, header.maxs
+    return not (x1 < box[0] or x0 > box[2] or y1 < box[1] or y0 > box[3])
+
+
+def laz_backend():
     laspy = _laspy()
     for b in (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs):
         if b.is_available():
@@ -160,12 +166,12 @@ def _check_chunk_table(path: Path, fh, start: int, size: int, *, max_chunks: int
                           f"the points and bytes of the file allow ({max_chunks}); {_FIX}")
 
 
-def _open_header(path: Path):
+def open_header(path: Path):
     laspy = _laspy()
     crs_evlrs = check_header(path)
     note_input(path)
     try:
-        with laspy.open(path, mode="r", laz_backend=_backend(),
+        with laspy.open(path, mode="r", laz_backend=laz_backend(),
                         read_evlrs=crs_evlrs is None) as reader:
             header = reader.header
         if crs_evlrs is not None:  # large EVLRs (waveforms) stay on disk; their CRS is read
@@ -175,9 +181,9 @@ def _open_header(path: Path):
                                              extended=True)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file; check the path") from None
-    except _read_errors() as exc:
+    except read_errors() as exc:
         raise FormatError(
-            f"{path}: not a readable LAS/LAZ file ({_short(exc)}); the file is corrupt or "
+            f"{path}: not a readable LAS/LAZ file ({short_error(exc)}); the file is corrupt or "
             "truncated - re-export or re-download it"
         ) from None
     if header.point_count and not header.are_points_compressed:
@@ -191,7 +197,7 @@ def _open_header(path: Path):
     return header
 
 
-def _read_errors() -> tuple[type[BaseException], ...]:
+def read_errors() -> tuple[type[BaseException], ...]:
     """The exceptions laspy and its LAZ backend raise on corrupt or truncated data."""
     laspy = _laspy()
     errors: list[type[BaseException]] = [laspy.errors.LaspyException, ValueError, EOFError,
@@ -205,12 +211,12 @@ def _read_errors() -> tuple[type[BaseException], ...]:
     return tuple(errors)
 
 
-def _short(exc: BaseException) -> str:
+def short_error(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return (text[0] if text else type(exc).__name__)[:160]
 
 
-def _crs_wkt(header) -> str | None:
+def crs_wkt_of(header) -> str | None:
     try:
         crs = header.parse_crs()
     except Exception:  # a malformed CRS record must not stop a registration
@@ -225,12 +231,12 @@ class LasSource(PointSource):
         self.paths = [Path(p) for p in paths]
         if not self.paths:
             raise InputError("no LAS/LAZ file given")
-        self.headers = [_open_header(p) for p in self.paths]
+        self.headers = [open_header(p) for p in self.paths]
         count = int(sum(h.point_count for h in self.headers))
         lo = np.min([h.mins for h in self.headers], axis=0)
         hi = np.max([h.maxs for h in self.headers], axis=0)
         first = self.headers[0]
-        wkts = [_crs_wkt(h) for h in self.headers]
+        wkts = [crs_wkt_of(h) for h in self.headers]
         crs_wkt = next((w for w in wkts if w), None)  # tiles without a CRS record take it
         for path, wkt in zip(self.paths, wkts):
             if not same_crs(crs_wkt, wkt):
@@ -261,13 +267,16 @@ class LasSource(PointSource):
         chunk_size: int = DEFAULT_CHUNK,
         *,
         keep: Callable[[object], np.ndarray] | None = None,
+        box: tuple[float, float, float, float] | None = None,
     ) -> Iterator[np.ndarray]:
         """Yield ``(n, 3)`` float64 coordinates chunk by chunk.
 
         ``keep`` optionally takes a laspy point record chunk and returns a boolean mask of the
-        points to keep (e.g. first returns only).
+        points to keep (e.g. first returns only). ``box`` ``(xmin, ymin, xmax, ymax)``: the
+        files whose header bounds do not meet it are not read (the points of those that do
+        are all given).
         """
-        for arr in self._records(chunk_size):
+        for arr in self._records(chunk_size, box=box):
             xyz = np.empty((len(arr), 3))
             xyz[:, 0] = arr.x
             xyz[:, 1] = arr.y
@@ -276,19 +285,22 @@ class LasSource(PointSource):
                 xyz = xyz[np.asarray(keep(arr), dtype=bool)]
             yield xyz
 
-    def _records(self, chunk_size: int) -> Iterator:
+    def _records(self, chunk_size: int, *,
+                 box: tuple[float, float, float, float] | None = None) -> Iterator:
         laspy = _laspy()
         for path, header in zip(self.paths, self.headers):
+            if box is not None and not _meets(header, box):
+                continue
             # records of up to 64 kB (extra bytes): a chunk's buffer stays within CHUNK_BYTES
             n = max(1, min(chunk_size, CHUNK_BYTES // header.point_format.size))
             try:
-                with laspy.open(path, mode="r", laz_backend=_backend(),
+                with laspy.open(path, mode="r", laz_backend=laz_backend(),
                                 read_evlrs=False) as reader:
                     for arr in reader.chunk_iterator(n):
                         yield arr
-            except _read_errors() as exc:
+            except read_errors() as exc:
                 raise FormatError(
-                    f"{path}: reading the points failed ({_short(exc)}); the file is corrupt or "
+                    f"{path}: reading the points failed ({short_error(exc)}); the file is corrupt or "
                     "truncated - re-export or re-download it"
                 ) from None
 
@@ -391,7 +403,7 @@ def write_las(
     compress = path.suffix.lower() == ".laz"
     with atomic_output(path) as tmp:
         with open(tmp, "wb") as fh:
-            data.write(fh, do_compress=compress, laz_backend=_backend() if compress else None)
+            data.write(fh, do_compress=compress, laz_backend=laz_backend() if compress else None)
 
 
 def transform_las(
@@ -424,7 +436,7 @@ def transform_las(
     compress = out_path.suffix.lower() == ".laz"
     with atomic_output(out_path) as tmp:
         with laspy.open(tmp, mode="w", header=header, do_compress=compress,
-                        laz_backend=_backend() if compress else None) as writer:
+                        laz_backend=laz_backend() if compress else None) as writer:
             for arr in source._records(chunk_size):
                 xyz = np.column_stack([arr.x, arr.y, arr.z])
                 _set_coordinates(arr, apply(xyz), header, source.paths[0])
