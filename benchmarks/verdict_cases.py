@@ -21,21 +21,24 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 WORK = HERE / "work" / "verdict"
-SCENE_VERSION = 1  # bump when a generator changes: cached scenes are made again
+SCENE_VERSION = 2  # bump when a generator changes: cached scenes are made again
 
 SYNTHETIC = ("suburban", "urban", "farmland", "mountains", "forest")
 REAL = ("muscatatuck", "longyearbyen", "autzen")
 GENERATORS = ("tiereg", "alt")
 N_BINS = ((300, 600), (600, 1000), (1000, 3000), (3000, 6000))
-MAX_LIDAR_POINTS = 2.0e6
-WORLD_CELLS = 2400  # a world raster is at most about this many cells a side
+MAX_LIDAR_POINTS = 1.5e6
+WORLD_CELLS = 2200  # a world raster is at most about this many cells a side
 SPECIAL_SCALES = (0.25, 0.3048, 1.0, 3.2808, 4.0)
 HALF_SEED = {"dev": 0, "heldout": 1000}
 # corners per km^2 a world offers for tie points at 1 m cells (measured on a few worlds of each
-# family; at 2 m about a third): tie densities are drawn up to half of it
+# family; at 2 m about a quarter): tie densities are drawn up to half of it. tiereg's worlds get
+# their Harris corners again down to 1e-3 of the strongest (its default, 5e-3, leaves too few for
+# the dense blocks; ``real_worlds.py`` goes down to 1e-4)
+TIEREG_CORNER_THRESHOLD = 1e-3
 CORNERS_PER_KM2 = {
-    "tiereg": {"suburban": 5000, "urban": 4000, "farmland": 1100, "mountains": 2500,
-               "forest": 3000},
+    "tiereg": {"suburban": 12000, "urban": 12000, "farmland": 12000, "mountains": 8000,
+               "forest": 10000},
     "alt": {"suburban": 12000, "urban": 7000, "farmland": 12000, "mountains": 5000,
             "forest": 15000},
 }
@@ -107,14 +110,20 @@ def _synthetic_geometry(rng, generator: str, family: str, n_bin, negative: str) 
     widest_lidar = np.sqrt(MAX_LIDAR_POINTS / density)
     widest_block = widest_lidar / 1.15
     rho_lo = max(150.0, n / (widest_block / 1000) ** 2)
-    rho = _log_uniform(rng, rho_lo, max(rho_lo * 1.001, 0.5 * CORNERS_PER_KM2[generator][family]))
-    block = 1000 * np.sqrt(n / rho)
-    lidar = min(_log_uniform(rng, 1.15, 3.5) * block, widest_lidar)
-    aspect = float(rng.uniform(1.0, 1.5))
-    reach = (2.0 if negative == "other-place" else 1.0) * 0.9 * block * aspect
-    world = lidar + 2 * reach + 100
-    cell = 1.0 if world <= WORLD_CELLS else 2.0 if world <= 2 * WORLD_CELLS else \
-        float(np.ceil(world / WORLD_CELLS * 2) / 2)
+    u, ratio, aspect = rng.random(), _log_uniform(rng, 1.15, 3.5), float(rng.uniform(1.0, 1.5))
+    far = 2.0 if negative == "other-place" else 1.0
+    cell = 1.0
+    for _ in range(3):  # a coarser world raster has fewer corners: size it again
+        rho_hi = max(rho_lo * 1.001, 0.5 * CORNERS_PER_KM2[generator][family] / cell**2)
+        rho = float(np.exp(np.log(rho_lo) + u * (np.log(rho_hi) - np.log(rho_lo))))
+        block = 1000 * np.sqrt(n / rho)
+        lidar = min(ratio * block, widest_lidar)
+        world = lidar + 2 * far * 0.9 * block * aspect + 100
+        coarser = 1.0 if world <= WORLD_CELLS else 2.0 if world <= 2 * WORLD_CELLS else \
+            float(np.ceil(world / WORLD_CELLS * 2) / 2)
+        if coarser == cell:
+            break
+        cell = coarser
     return {"n_target": n, "tie_density_km2": float(rho), "block_m": float(block),
             "aspect": aspect, "lidar_m": float(lidar), "lidar_density": float(density),
             "world_m": float(np.ceil(world / 10) * 10), "cell_m": cell}
@@ -214,6 +223,7 @@ def _tiereg_scene(case: Case):
 
     from tiereg.simulate import (HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene,
                                  make_world)
+    from tiereg.simulate.world import find_corners
 
     hidden = HiddenTransform(heading_deg=case.heading_deg, scale=case.scale,
                              tilt_deg=case.tilt_deg, model_origin=case.model_origin)
@@ -239,6 +249,8 @@ def _tiereg_scene(case: Case):
                          else None)
         world = make_world(spec.kind, size_m=spec.world_size_m, cell=spec.world_cell_m,
                            seed=spec.seed)
+        world = replace(world, **dict(zip(("corner_rc", "corner_response"), find_corners(
+            world.ortho, threshold_rel=TIEREG_CORNER_THRESHOLD))))
     scene = make_scene(spec, world=world)
     lidar = Lidar(scene.lidar.xyz, scene.lidar.return_number, scene.lidar.number_of_returns,
                   scene.lidar.classification)
