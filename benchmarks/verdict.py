@@ -327,13 +327,13 @@ def main() -> None:
         seconds = time.perf_counter() - t0
     from verdict_report import write_report
 
-    partial = args.quick or args.only or args.half != "both"
+    partial = args.quick or args.only or args.half != "both" or len(rows) < len(cases)
     out_dir = HERE / "work" if partial else RESULTS
     meta = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python "
                        f"{platform.python_version()}",
             "tiereg": _tiereg_commit(), "jobs": args.jobs, "wall_seconds": seconds,
-            "cases": len(cases), "selection": "quick" if args.quick else args.half}
+            "cases": len(rows), "selection": "quick" if args.quick else args.half}
     path = write_report(rows, meta, out_dir, name="verdict-quick" if args.quick else "verdict")
     print(path)
 

@@ -11,7 +11,7 @@ import numpy as np
 
 HALVES = ("dev", "heldout")
 N_BINS = ((0, 300), (300, 600), (600, 1000), (1000, 3000), (3000, 6000), (6000, 10**9))
-DENSITY_BINS = ((0, 0.5), (0.5, 1), (1, 2), (2, 4), (4, 8.01))
+DENSITY_BINS = ((0, 0.5), (0.5, 1), (1, 2), (2, 4), (4, 8))
 
 
 def category(r: dict) -> str:
@@ -19,8 +19,9 @@ def category(r: dict) -> str:
         return "failed"
     if r["confident"]:
         return "correct, confident" if r["correct"] else "confidently wrong"
-    return "correct, not confident" if r["coarse_ok"] and not r["negative"] else (
-        "rejected" if r["negative"] else "wrong, not confident")
+    if r["negative"]:
+        return "rejected"
+    return "correct, not confident" if r["correct"] else "wrong, not confident"
 
 
 def counts(rows: list[dict]) -> dict:
@@ -176,7 +177,7 @@ def _fine_section(ok: list[dict]) -> list[str]:
             out.append(f"| {'held-out' if h == 'heldout' else h} | {state} | {len(s)} | "
                        f"{np.median([r['rms_m'] for r in s]):.3f} | "
                        f"{np.median([r['rms_m'] / r['fine_bound_m'] for r in s]):.2f} | "
-                       f"{sum(r['fine_ok'] for r in s)} | "
+                       f"{sum(r['rms_m'] <= r['fine_bound_m'] for r in s)} | "
                        f"{f'{sum(hon)}/{len(hon)}' if hon else '-'} | "
                        f"{_f(float(np.median(nm)) if nm else None)} |")
     return out + ["", "RMS: over the tie points, of the distance between the estimated and the "
