@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DISTANCES_M = (30.0, 10.0, 3.0, 1.0)
+DISTANCES_M = (30.0, 5.0, 1.0)
 DSM_CELL_M = 2.0
 
 
@@ -145,8 +145,7 @@ def lidar_dsm(cloud_world: np.ndarray, epsg: int):
     total = np.bincount(flat, weights=cloud_world[:, 2], minlength=rows * cols)
     count = np.bincount(flat, minlength=rows * cols)
     with np.errstate(invalid="ignore", divide="ignore"):
-        z = (total / count).reshape(rows, cols).astype(np.float32)
-    z[~np.isfinite(z)] = -9999.0
+        z = np.ma.masked_invalid((total / count).reshape(rows, cols).astype(np.float32))
     transform = rasterio.transform.from_origin(x0, y1, c, c)
     return xdem.DEM.from_array(z, transform=transform, crs=rasterio.crs.CRS.from_epsg(epsg),
                                nodata=-9999.0)
@@ -168,7 +167,11 @@ def xdem_coreg(method: str, placed: np.ndarray, origin: np.ndarray, dsm, epsg: i
         coreg.fit(dsm, pts, z_name="z", random_state=0)
         moved = coreg.apply(pts, z_name="z")
         after = np.column_stack([moved.geometry.x, moved.geometry.y, moved["z"]]) - origin
-        return PeerResult(similarity_from_pairs(placed, after), time.perf_counter() - t0,
-                          note="shift" if method == "NuthKaab" else "rigid")
+        rows = moved.index.to_numpy()  # the points xdem kept, by their row
+        ok = np.all(np.isfinite(after), axis=1)
+        return PeerResult(similarity_from_pairs(placed[rows[ok]], after[ok]),
+                          time.perf_counter() - t0,
+                          note=("shift" if method == "NuthKaab" else "rigid")
+                          + f"; {ok.sum()} of {len(placed)} points moved")
     except Exception as exc:  # noqa: BLE001
         return _failed(t0, exc)
