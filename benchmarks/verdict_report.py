@@ -36,6 +36,9 @@ def counts(rows: list[dict]) -> dict:
                                             or r.get("negative")),
             "confidently_wrong_fine": sum(1 for r in cw if r.get("coarse_ok")
                                           and not r.get("negative")),
+            "confidently_wrong_fine_honest": sum(1 for r in cw if r.get("coarse_ok")
+                                                 and not r.get("negative")
+                                                 and r.get("precision_honest")),
             "wrong_not_confident": cat["wrong, not confident"], "failed": cat["failed"]
             + sum(1 for r in neg if category(r) == "failed"),
             "negatives": len(neg), "negatives_rejected": sum(1 for r in neg
@@ -120,9 +123,13 @@ def write_report(rows: list[dict], meta: dict, out_dir: Path, *, name: str = "ve
                      f"{c['confidently_wrong']} ({c['confidently_wrong_coarse']} / "
                      f"{c['confidently_wrong_fine']}) | {c['wrong_not_confident']} | "
                      f"{c['failed']} | {c['negatives_rejected']}/{c['negatives']} |")
+    honest = {h: summary[h]["confidently_wrong_fine_honest"] for h in HALVES}
     lines += ["", "Confidently wrong counts negatives too; *coarse*: the pose is wrong (or a "
               "negative was accepted), *fine*: the pose is right to a cell but the fine answer "
-              "misses the 1.5-noise bound.", "", "## Breakdowns", ""]
+              "misses the 1.5-noise bound. Of the *fine* ones, "
+              f"{honest['dev']} (dev) and {honest['heldout']} (held-out) are within three of "
+              "the standard deviations tiereg states for them (RESULT.json `precision`): "
+              "imprecise and saying so, rather than wrong.", "", "## Breakdowns", ""]
     lines += _group_table(rows, lambda r: r["family"], "Scene family")
     lines += _group_table(rows, lambda r: r["generator"], "Generator")
     lines += _group_table([r for r in rows if "n_tie_points" in r],
@@ -140,6 +147,10 @@ def write_report(rows: list[dict], meta: dict, out_dir: Path, *, name: str = "ve
     failed = [r for r in rows if r.get("status") != "ok"]
     lines += ["## Failures (exception, time or memory limit)", ""]
     lines += [f"- {r['case']}: {r.get('error')}" for r in failed] or ["None."]
+    lines += ["", "## Why the fine stage refused (the coarse answer then stands)", ""]
+    refused = Counter(_reason_key(r.get("fine_refused") or "?") for r in ok
+                      if r["fine_state"] == "refused")
+    lines += [f"- {n} x {k}" for k, n in refused.most_common(8)] or ["None."]
     lines += ["", "## Why correct answers were not confident (reasons, numbers masked)", ""]
     why = Counter(_reason_key(x) for r in ok if category(r) == "correct, not confident"
                   for x in r["reasons"])
