@@ -10,8 +10,8 @@ Blocks of 300-6,000 tie points, lidar at 0.5-8 points per m^2 (at most 3 million
 noise 0.1-0.5 m vertical (half that horizontally), 0-5 % blunders of up to 5-20 m, 50-100 % of the
 block over the lidar, any heading, scale 0.25-4 (0.3048 and 3.2808: feet), tilt ~0.3 deg.
 
-    python benchmarks/verdict.py                 # every case -> benchmarks/results/verdict.{md,json}
-    python benchmarks/verdict.py --quick         # a handful of dev cases -> benchmarks/work/
+    python benchmarks/verdict.py               # all cases -> benchmarks/results/verdict.{md,json}
+    python benchmarks/verdict.py --quick       # a handful of dev cases -> benchmarks/work/
     python benchmarks/verdict.py --half dev --jobs 2
 
 Each case runs ``tiereg.register(moving, "reference.laz")`` with default options in a process of
@@ -183,7 +183,8 @@ def evaluate(case: Case, truth: dict, d: dict, moving: np.ndarray) -> dict:
         fine_ok = rms_z <= bound
     correct = (not d["confident"]) if case.negative else (coarse_ok and fine_ok)
     honest = precision_honest(result, T_true, moving) if state.startswith("accepted") else None
-    return {"status": "ok", "confident": bool(d["confident"]), "reasons": list(d["reasons"]),
+    return {"status": "ok", "T_ref_mov": d["T_ref_mov"], "T_ref_mov_true": truth["T_ref_mov"],
+            "confident": bool(d["confident"]), "reasons": list(d["reasons"]),
             "correct": bool(correct), "coarse_ok": bool(coarse_ok), "fine_ok": bool(fine_ok),
             "heading_err_deg": heading_err, "scale_err": scale_err,
             "centre_err_m": centre_err_m, "centre_err_cells": centre_err_m / cell_ref,

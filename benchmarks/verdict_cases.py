@@ -211,7 +211,7 @@ def make_case_scene(case: Case) -> dict:
     truth = {"scene_version": SCENE_VERSION, "case": _jsonable(case),
              "T_ref_mov": T_ref_mov.matrix.tolist(), "n_tie_points": int(len(moving)),
              "n_blunders": int(blunders), "n_lidar_points": int(len(lidar)),
-             "n_spikes": int(round(case.spikes_fraction * (len(lidar) / (1 + case.spikes_fraction)))),
+             "n_spikes": round(case.spikes_fraction * len(lidar) / (1 + case.spikes_fraction)),
              "overlap_measured": float(overlap), "georef": list(GEOREF)}
     (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
     return truth
@@ -221,8 +221,14 @@ def _tiereg_scene(case: Case):
     """tiereg's simulator: its world, lidar and image block (or its sensors on a real world)."""
     from sensors_alt import GEOREF, Lidar
 
-    from tiereg.simulate import (HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene,
-                                 make_world)
+    from tiereg.simulate import (
+        HiddenTransform,
+        ImageBlock,
+        LidarSurvey,
+        SceneSpec,
+        make_scene,
+        make_world,
+    )
     from tiereg.simulate.world import find_corners
 
     hidden = HiddenTransform(heading_deg=case.heading_deg, scale=case.scale,

@@ -82,7 +82,8 @@ def _case_line(r: dict) -> str:
     return (f"| {r['case']} | {r['generator']} | {r['n_tie_points']} | "
             f"{r['lidar_density']:.2f} | {r['noise_z_m']:.2f} | "
             f"{100 * r['blunder_fraction']:.1f} % | {r['overlap']:.2f} | {r['scale']:.4g} | "
-            f"{_f(r.get('heading_err_deg'))} | {_f(100 * r['scale_err'] if 'scale_err' in r else None)} | "
+            f"{_f(r.get('heading_err_deg'))} | "
+            f"{_f(100 * r['scale_err'] if 'scale_err' in r else None)} | "
             f"{_f(r.get('centre_err_cells'))} | {_f(r.get('rms_m'), '.3f')} | "
             f"{r.get('fine_state', '-')} |")
 

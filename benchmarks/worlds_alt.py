@@ -29,8 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from tiereg.simulate import World
 from worlds_alt_parts import (
     BASE_HEIGHT_M,
     Canvas,
@@ -49,6 +47,8 @@ from worlds_alt_parts import (
     terraces,
     value_noise,
 )
+
+from tiereg.simulate import World
 
 FAMILIES = ("suburban", "urban", "farmland", "mountains", "forest")
 
@@ -253,7 +253,8 @@ def make_alt_world(family: str, *, size_m: float, cell: float, seed: int) -> Alt
     """A square world of ``size_m`` metres centred on (0, 0) of the ``family``."""
     if family not in BUILDERS:
         raise ValueError(f"unknown family {family!r}; choose from {FAMILIES}")
-    c = Canvas(int(round(size_m / cell)), float(cell), np.random.default_rng([seed, 7001, FAMILIES.index(family)]))
+    rng = np.random.default_rng([seed, 7001, FAMILIES.index(family)])
+    c = Canvas(round(size_m / cell), float(cell), rng)
     sun = BUILDERS[family](c)
     c.albedo[c.water] = 0.07 + 0.01 * c.rng.random(int(c.water.sum()))
     dsm = c.dtm + np.maximum(c.above, c.canopy)

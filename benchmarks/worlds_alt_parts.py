@@ -1,5 +1,6 @@
-"""Building blocks of the second world generator (``worlds_alt.py``): the raster being built, terrain
-by midpoint displacement, roads, buildings, crowns, the lit orthoimage and Foerstner corners."""
+"""Building blocks of the second world generator (``worlds_alt.py``): the raster being built,
+terrain by midpoint displacement, roads, buildings, crowns, the lit orthoimage and Foerstner
+corners."""
 
 from __future__ import annotations
 
