@@ -324,10 +324,12 @@ def main() -> None:
             list(pool.map(gen, cases))
         return
     t0 = time.perf_counter()
+    saved_meta: dict = {}
     if args.rescore:
         rows = [r for r in map(rescore, cases) if r is not None]
-        seconds = float(json.loads((RESULTS / "verdict.json").read_text())["meta"]
-                        ["wall_seconds"]) if (RESULTS / "verdict.json").exists() else 0.0
+        if (RESULTS / "verdict.json").exists():  # the run's own date, jobs and wall time
+            saved_meta = json.loads((RESULTS / "verdict.json").read_text())["meta"]
+        seconds = float(saved_meta.get("wall_seconds", 0.0))
     else:
         rows = run(_interleaved(cases), args.jobs)
         seconds = time.perf_counter() - t0
@@ -340,13 +342,15 @@ def main() -> None:
                        f"{platform.python_version()}",
             "tiereg": _tiereg_commit(), "jobs": args.jobs, "wall_seconds": seconds,
             "cases": len(rows), "selection": "quick" if args.quick else args.half}
+    meta.update({k: saved_meta[k] for k in ("date", "jobs") if k in saved_meta})
     path = write_report(rows, meta, out_dir, name="verdict-quick" if args.quick else "verdict")
     print(path)
 
 
 def _tiereg_commit() -> str:
     try:
-        return subprocess.run(["git", "-C", str(HERE), "rev-parse", "--short", "HEAD"],
+        return subprocess.run(["git", "-C", str(HERE), "log", "-1", "--format=%h", "--",
+                               str(HERE.parent / "src")],
                               capture_output=True, text=True, check=True).stdout.strip()
     except Exception:  # noqa: BLE001 -- not a git checkout
         import tiereg
