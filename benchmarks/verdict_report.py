@@ -176,8 +176,12 @@ def write_report(rows: list[dict], meta: dict, out_dir: Path, *, name: str = "ve
             lines.append(_case_line(r) + f" {r['confident']} | {r['correct']} |")
     path = out_dir / f"{name}.md"
     path.write_text("\n".join(lines) + "\n")
-    (out_dir / f"{name}.json").write_text(json.dumps(
-        {"meta": meta, "summary": summary, "cases": rows}, indent=1, default=float) + "\n")
+    def compact(o) -> str:
+        return json.dumps(o, separators=(",", ":"), default=float)
+
+    (out_dir / f"{name}.json").write_text(  # one case a line, a few hundred kB in all
+        f'{{"meta":{compact(meta)},\n"summary":{compact(summary)},\n"cases":[\n'
+        + ",\n".join(compact(r) for r in rows) + "]}\n")
     return path
 
 
