@@ -176,8 +176,15 @@ def write_report(rows: list[dict], meta: dict, out_dir: Path, *, name: str = "ve
             lines.append(_case_line(r) + f" {r['confident']} | {r['correct']} |")
     path = out_dir / f"{name}.md"
     path.write_text("\n".join(lines) + "\n")
+    def short(o, key=""):  # six significant digits, transforms in full
+        if isinstance(o, dict):
+            return {k: short(v, k) for k, v in o.items()}
+        if isinstance(o, list):
+            return [short(v, key) for v in o]
+        return float(f"{o:.6g}") if isinstance(o, float) and not key.startswith("T_") else o
+
     def compact(o) -> str:
-        return json.dumps(o, separators=(",", ":"), default=float)
+        return json.dumps(short(o), separators=(",", ":"), default=float)
 
     (out_dir / f"{name}.json").write_text(  # one case a line, a few hundred kB in all
         f'{{"meta":{compact(meta)},\n"summary":{compact(summary)},\n"cases":[\n'
