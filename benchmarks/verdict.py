@@ -187,7 +187,7 @@ def evaluate(case: Case, truth: dict, d: dict, moving: np.ndarray) -> dict:
         fine_ok = rms_z <= bound
     correct = (not d["confident"]) if case.negative else (coarse_ok and fine_ok)
     honest = precision_honest(result, T_true, moving) if state.startswith("accepted") else None
-    return {"status": "ok", "T_ref_mov": d["T_ref_mov"], "T_ref_mov_true": truth["T_ref_mov"],
+    return {"status": "ok", "T_ref_mov": d["T_ref_mov"],
             "confident": bool(d["confident"]), "reasons": list(d["reasons"]),
             "correct": bool(correct), "coarse_ok": bool(coarse_ok), "fine_ok": bool(fine_ok),
             "heading_err_deg": heading_err, "scale_err": scale_err,
