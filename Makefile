@@ -43,15 +43,19 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/orientation.py
 	$(BIN)/python benchmarks/no_overlap_power.py
 	$(BIN)/python benchmarks/no_overlap_power.py --overlap 0.6 0.7
+	$(BIN)/python benchmarks/verdict.py --jobs 2
+	$(BIN)/python benchmarks/fine_far.py
 	cd benchmarks && ../$(BIN)/python scale.py && ../$(BIN)/python scale_report.py
 
 bench-quick: install
 	$(BIN)/python benchmarks/coarse.py --quick
 	$(BIN)/python benchmarks/fine.py --quick
+	$(BIN)/python benchmarks/verdict.py --quick
+	$(BIN)/python benchmarks/fine_far.py --quick
 
-# Peers run side by side in the benchmarks: CloudCompare (Debian package) and Open3D (needs the
-# Debian package libusb-1.0-0). Best effort: a peer that cannot be installed is left out of the
-# tables, and the benchmark says so.
+# Peers run side by side in the benchmarks: CloudCompare (Debian package), Open3D (needs the
+# Debian package libusb-1.0-0), small_gicp and xdem. Best effort: a peer that cannot be installed
+# is left out of the tables, and the benchmark says so.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 bench-peers: install
 	@command -v CloudCompare >/dev/null || command -v cloudcompare >/dev/null || \
@@ -61,6 +65,9 @@ bench-peers: install
 	@$(BIN)/python -c "import open3d" 2>/dev/null || \
 	  $(BIN)/python -m pip install --quiet -e '.[bench-open3d]' || \
 	  echo "Open3D could not be installed: the benchmarks leave it out"
+	@$(BIN)/python -c "import small_gicp, xdem" 2>/dev/null || \
+	  $(BIN)/python -m pip install --quiet -e '.[bench-peers]' || \
+	  echo "small_gicp or xdem could not be installed: the benchmarks leave them out"
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache
