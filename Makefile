@@ -43,6 +43,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/orientation.py
 	$(BIN)/python benchmarks/no_overlap_power.py
 	$(BIN)/python benchmarks/no_overlap_power.py --overlap 0.6 0.7
+	$(BIN)/python benchmarks/sfm.py
 
 bench-quick: install
 	$(BIN)/python benchmarks/coarse.py --quick
