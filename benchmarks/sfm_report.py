@@ -109,7 +109,7 @@ def _case_lines(rows) -> list[str]:
         lines.append(
             f"| {c.name} | {c.half} | {c.variant} | {c.n_points:,} | {_f(r.true_scale, '.4g')} "
             f"| {_yn(r.correct)} | {_yn(r.confident)} | {_f(r.heading_err_deg)} | "
-            f"{_f(r.tilt_err_deg)} | {_f(100 * r.scale_err if np.isfinite(r.scale_err) else r.scale_err)} | "
+            f"{_f(r.tilt_err_deg)} | {_f(100 * r.scale_err)} | "
             f"{_f(r.position_err_cells, '.3g')} | {_f(r.cell_size, '.3g')} | "
             f"{_f(r.rms_gsd, '.3g')} / {_f(r.max_gsd, '.3g')} | {run.seconds:.1f} | "
             f"{run.peak_mb:.0f} | {run.exit_code} | {note} |")

@@ -29,7 +29,6 @@ from sfm_render import (
     FlightPlan,
     HeightField,
     Pose,
-    cast_pixels,
     make_texture,
     plan_block,
     render_image,

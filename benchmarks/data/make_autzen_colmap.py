@@ -22,7 +22,8 @@ of the area, 1 ft pixels, EPSG:2994; PDAL ``test/data/autzen/``). Steps:
    unchanged (COLMAP's gauge and orientation) into ``src/tiereg/data/autzen_colmap/``.
 5. ``truth.json``: the similarity from the model to the LAZ's frame fitted to where the model
    points' observations, cast through the true cameras, meet the surface
-   (``sfm_reconstruct.compute_truth``), with its residuals; GSD in feet.
+   (``sfm_reconstruct.compute_truth``), with its residuals; GSD in feet; and a check against
+   the lidar itself: the mapped points' heights minus the nearest first returns'.
 
 Everything random is seeded: a rerun gives the same images; pycolmap's result may differ in
 the last digits from one machine or version to another.
@@ -107,6 +108,26 @@ def texture(source: Path, field_: HeightField) -> Texture:
                         rng=np.random.default_rng([SEED, 1]))
 
 
+def lidar_check(model: Path, T_ref_mov) -> dict:
+    """Heights of the model's points mapped by the truth minus the median of the four nearest
+    first returns of the LAZ (points with a return within 3 ft horizontally)."""
+    import laspy
+    from scipy.spatial import cKDTree
+
+    from sfm_reconstruct import read_observations
+
+    las = laspy.read(LAZ)
+    first = np.asarray(las.return_number) == 1
+    q = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[first]
+    p = T_ref_mov.apply(read_observations(model).xyz)
+    dist, idx = cKDTree(q[:, :2]).query(p[:, :2], k=4)
+    near = dist[:, 0] < 3.0
+    dz = p[near, 2] - np.median(q[idx[near], 2], axis=1)
+    med = float(np.median(dz))
+    return {"n_points_near_a_return": int(near.sum()), "median_dz_ft": med,
+            "nmad_dz_ft": float(1.4826 * np.median(np.abs(dz - med)))}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--source", type=Path, required=True,
@@ -135,16 +156,17 @@ def main() -> None:
     gsd = float(np.median([(p.centre[2] - float(field_.height(p.centre[:1], p.centre[1:2])[0]))
                            / CAMERA.focal_px for p in poses]))
     truth = compute_truth(model, poses, CAMERA, field_, gsd=gsd, georef=np.zeros(3))
-    if OUT.exists():
-        shutil.rmtree(OUT)
-    OUT.mkdir(parents=True)
+    OUT.mkdir(parents=True, exist_ok=True)
+    for f in OUT.glob("*.bin"):  # the README stays
+        f.unlink()
     for f in sorted(model.iterdir()):
         shutil.copy2(f, OUT / f.name)
     d = truth.to_dict()
     d.update(units="international feet (EPSG:2994), as autzen_trim.laz",
              true_camera=asdict(CAMERA), estimated_camera=stats["camera_params"],
              plan=asdict(PLAN), n_images=len(poses), n_registered=stats["n_registered"],
-             reprojection_error_px=stats["reprojection_error_px"])
+             reprojection_error_px=stats["reprojection_error_px"],
+             lidar_check=lidar_check(model, truth.T_ref_mov))
     (OUT / "truth.json").write_text(json.dumps(d, indent=1) + "\n")
     print(json.dumps(d, indent=1))
 
