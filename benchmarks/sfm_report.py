@@ -47,7 +47,7 @@ def _summary_line(label: str, s: dict) -> str:
     return (f"| {label} | {s['cases']} | **{s['correct_and_confident']}/{s['positives']}** | "
             f"{s['correct']}/{s['positives']} | **{s['confidently_wrong']}** | "
             f"{s['negatives_rejected']}/{s['negatives']} | {s['tracebacks']} | "
-            f"{s['timeouts']} | {s['no_result']} | {s['max_peak_mb']:.0f} | "
+            f"{s['timeouts']} | {s['no_result']} | {_f(s['max_peak_mb'], '.0f')} | "
             f"{s['seconds'] / 60:.1f} |")
 
 
@@ -60,16 +60,18 @@ SUMMARY_HEAD = [
 
 def _reconstruction_lines(built) -> list[str]:
     lines = [
-        "| scene | half | images (registered) | points | reproj. px | GSD | flying height | "
+        "| scene | half | images (registered) | rays missed (%) | points | reproj. px | GSD | "
+        "flying height | "
         "model units per ref. unit | up in model frame | truth fit: points RMS / median (GSD) | "
         "cameras RMS (GSD) | fits differ at centre (GSD) / rotation (deg) / scale (%) | "
         "f, k1, k2 true / estimated | render s | COLMAP s |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---|---|---:|---:|",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---|---|---:|---:|",
     ]
     for name, b in built.items():
         rec, t, s = b.reconstruction, b.truth, b.scene
         reg = rec.get("n_registered", 0)
         head = (f"| {name} | {s.half} | {b.block['n_images']} ({reg}) | "
+                f"{100 * b.block['miss_fraction']:.2f} | "
                 f"{rec.get('n_points', 0):,} | {_f(rec.get('reprojection_error_px'))} | "
                 f"{b.block['gsd']:.3g} | {b.block['flying_height']:.0f} | ")
         cam = s.camera
@@ -116,7 +118,36 @@ def _case_lines(rows) -> list[str]:
     return lines
 
 
-def write_report(rows, built, out_dir: Path, *, seconds: float, build_seconds: float,
+def _outcome_lines(rows) -> list[str]:
+    """How the cases ended: exit code and the first reason given (or stderr's last line)."""
+    from collections import Counter
+
+    def kind(r) -> str:
+        if r.run.timed_out:
+            return "timed out"
+        if r.run.exit_code not in (0, 3):
+            last = r.run.stderr_tail.split(" | ")[-1] if r.run.stderr_tail else ""
+            return f"exit {r.run.exit_code}: {last[:90]}"
+        first = r.note.split("; ")[0] if r.note else ""
+        return f"exit {r.run.exit_code}: {first[:90]}"
+
+    counts = Counter(kind(r) for r in rows)
+    return ["| outcome | cases |", "|---|---:|",
+            *[f"| {k.replace('|', '/')} | {n} |" for k, n in counts.most_common()]]
+
+
+def _attainable_lines(rows) -> list[str]:
+    lines = ["| scene | half | RMS / max from the truth (GSD) | scale err (%) | confident | s | "
+             "peak MB | exit |", "|---|---|---|---:|---|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r.case.scene} | {r.case.half} | {_f(r.rms_gsd)} / {_f(r.max_gsd)} | "
+                     f"{_f(100 * r.scale_err, '.3f')} | {_yn(r.confident)} | "
+                     f"{r.run.seconds:.1f} | {r.run.peak_mb:.0f} | {r.run.exit_code} |")
+    return lines
+
+
+def write_report(rows, attainable, built, out_dir: Path, *, seconds: float,
+                 build_seconds: float,
                  speed: str, command: str, date: str) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     halves = {h: summarize([r for r in rows if r.case.half == h]) for h in HALVES}
@@ -158,6 +189,15 @@ def write_report(rows, built, out_dir: Path, *, seconds: float, build_seconds: f
         *[_summary_line(v, s) for v, s in by_variant.items()], "",
         "## By scene", "", *SUMMARY_HEAD,
         *[_summary_line(s, v) for s, v in by_scene.items()], "",
+        "## How the cases ended", "", *_outcome_lines(rows), "",
+        "## The fine stage from the truth",
+        "",
+        "Not counted above: `tiereg register MODEL LIDAR --coarse none --initial truth.json` "
+        "per scene, the fine stage started at the truth. How far it moves from the truth "
+        "shows what the data allow: the models are not exact similarities of the world "
+        "(COLMAP's self-calibration bends them a little), so the similarity that fits the "
+        "lidar best and the one that fits the true surface points best differ.", "",
+        *_attainable_lines(attainable), "",
         "## Reconstructions", "",
         "Scale: reference units (metres) per model unit is the inverse of the column; up: the "
         "reference's vertical in the model frame (COLMAP's gauge: z about -1 is upside down). "
@@ -176,12 +216,16 @@ def write_report(rows, built, out_dir: Path, *, seconds: float, build_seconds: f
                        "camera": asdict(b.scene.camera), "block": b.block,
                        "reconstruction": b.reconstruction, "truth": b.truth, "lidar": b.lidar,
                        "seconds": b.seconds} for n, b in built.items()},
-        "cases": [{**asdict(r.case), **asdict(r.run),
-                   **{k: v for k, v in asdict(r).items() if k not in ("case", "run")}}
-                  for r in rows],
+        "cases": [_row_dict(r) for r in rows],
+        "fine_from_truth": [_row_dict(r) for r in attainable],
     }
     (out_dir / "sfm.json").write_text(json.dumps(_finite(data), indent=1, default=_jsonable,
                                                  allow_nan=False) + "\n")
+
+
+def _row_dict(r) -> dict:
+    return {**asdict(r.case), **asdict(r.run),
+            **{k: v for k, v in asdict(r).items() if k not in ("case", "run")}}
 
 
 def _finite(o):

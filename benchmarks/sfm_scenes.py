@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from real_worlds import _SIZING, REAL_WORLDS, load_real_world
-from sfm_reconstruct import Truth, compute_truth, reconstruct
+from sfm_reconstruct import compute_truth, read_observations, reconstruct
 from sfm_render import (
     Camera,
     FlightPlan,
@@ -36,6 +36,7 @@ from sfm_render import (
 from tiereg.simulate.scene import GEOREF
 from tiereg.simulate.sensors import LidarPoints, LidarSurvey, sample_lidar
 from tiereg.simulate.world import World, make_world
+from tiereg.transform import Transform
 
 log = logging.getLogger(__name__)
 
@@ -269,6 +270,7 @@ def make_lidar(scene: SfmScene, world: World, block: Block,
     meta = out / "lidar.json"
     if meta.is_file():
         return json.loads(meta.read_text())
+    t0 = time.perf_counter()
     rng = np.random.default_rng([scene.seed, 9])
     x0, y0, x1, y1 = block.footprint
     mx, my = 0.03 * (x1 - x0), 0.03 * (y1 - y0)
@@ -293,7 +295,8 @@ def make_lidar(scene: SfmScene, world: World, block: Block,
     write_laz(out / "lidar-partial.laz", LidarPoints(
         partial.xyz + georef, partial.return_number, partial.number_of_returns,
         partial.classification))
-    d = {"footprint_world": fp, "density_per_unit2": survey.density_per_m2,
+    d = {"seconds": time.perf_counter() - t0,
+         "footprint_world": fp, "density_per_unit2": survey.density_per_m2,
          "n_points": int(len(lidar.xyz)), "n_points_partial": int(len(partial.xyz)),
          "covered_full": float(inside.mean()), "covered_partial": covered,
          "partial_direction_deg": float(np.degrees(a)), "crs_epsg": CRS_EPSG,
@@ -343,25 +346,16 @@ def build_scene(scene: SfmScene) -> BuiltScene:
         truth = tr.to_dict()
         truth["true_camera"] = asdict(scene.camera)
         truth["estimated_camera"] = rec["camera_params"]
+        truth["seconds"] = time.perf_counter() - t
         truth_path.write_text(json.dumps(truth, indent=1) + "\n")
-    seconds["truth"] = time.perf_counter() - t
+    seconds["truth"] = truth.get("seconds", time.perf_counter() - t)
     t = time.perf_counter()
-    from sfm_reconstruct import read_observations
-    from tiereg.transform import Transform
-
     xyz = read_observations(model_dir).xyz
     T = Transform(np.asarray(truth["T_ref_mov"]))
     surface_xy = T.apply(xyz)[:, :2] - np.asarray(GEOREF)[:2]
     lidar = make_lidar(scene, world, block, surface_xy)
-    seconds["lidar"] = time.perf_counter() - t
+    seconds["lidar"] = lidar.get("seconds", time.perf_counter() - t)
     return BuiltScene(scene, model_dir, rec, truth, lidar, block_d, seconds)
 
 
-def truth_transform(truth: dict):
-    from tiereg.transform import Transform
-
-    return Transform(np.asarray(truth["T_ref_mov"]))
-
-
-__all__ = ["SCENES", "QUICK", "SfmScene", "BuiltScene", "build_scene", "scene_by_name",
-           "truth_transform", "Truth"]
+__all__ = ["SCENES", "QUICK", "SfmScene", "BuiltScene", "build_scene", "scene_by_name"]
