@@ -62,8 +62,8 @@ def _reconstruction_lines(built) -> list[str]:
     lines = [
         "| scene | half | images (registered) | rays missed (%) | points | reproj. px | GSD | "
         "flying height | "
-        "model units per ref. unit | up in model frame | truth fit: points RMS / median (GSD) | "
-        "cameras RMS (GSD) | fits differ at centre (GSD) / rotation (deg) / scale (%) | "
+        "model units per ref. unit | up in model frame | truth fit: points RMS / median, GSD "
+        "(ref. units; points used) | cameras RMS, GSD (ref. units) | fits differ at centre (GSD) / rotation (deg) / scale (%) | "
         "f, k1, k2 true / estimated | render s | COLMAP s |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---|---|---:|---:|",
     ]
@@ -87,8 +87,9 @@ def _reconstruction_lines(built) -> list[str]:
         up = ", ".join(f"{u:+.2f}" for u in t["up_in_model_frame"])
         lines.append(
             head + f"{t['model_units_per_ref_unit']:.4g} | ({up}) | "
-            f"{fp['rms_gsd']:.2f} / {fp['median_gsd']:.2f} ({fp['n_used']:,} of {fp['n']:,}) | "
-            f"{fc['rms_gsd']:.2f} | {fd['at_block_centre'] / t['gsd']:.2f} / "
+            f"{fp['rms_gsd']:.2f} / {fp['median_gsd']:.2f} ({fp['rms']:.3g} / {fp['median']:.3g};"
+            f" {fp['n_used']:,} of {fp['n']:,}) | "
+            f"{fc['rms_gsd']:.2f} ({fc['rms']:.3g}) | {fd['at_block_centre'] / t['gsd']:.2f} / "
             f"{fd['rotation_deg']:.3f} / {100 * fd['scale_relative']:.2f} | "
             f"{true_cam} / {est_s} | {b.seconds.get('render', 0):.0f} | "
             f"{b.seconds.get('reconstruct', 0):.0f} |")
