@@ -46,6 +46,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/verdict.py --jobs 2
 	$(BIN)/python benchmarks/fine_far.py
 	cd benchmarks && ../$(BIN)/python scale.py && ../$(BIN)/python scale_report.py
+	$(BIN)/python benchmarks/sfm.py
 
 bench-quick: install
 	$(BIN)/python benchmarks/coarse.py --quick
