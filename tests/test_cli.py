@@ -112,14 +112,11 @@ def test_apply_to_a_dsm_moves_it(tmp_path, capsys):
 
 
 def test_demo(tmp_path, capsys):
-    code, stdout, _ = run(["demo", "--out", tmp_path], capsys)
-    assert code == 0
+    code, stdout, stderr = run(["demo", "--out", tmp_path], capsys)
+    assert code == 0, stderr
     assert "truth" in stdout and "recovered" in stdout and "cell of" in stdout
-    assert (tmp_path / "RESULT.json").exists() and (tmp_path / "tiepoints.xyz").exists()
-    # -q: errors only; the exit code still tells
-    code, stdout, stderr = run(["demo", "--out", tmp_path / "quiet", "-q"], capsys)
-    assert code == 0 and stdout == "" and stderr == ""
-    assert (tmp_path / "quiet" / "RESULT.json").exists()
+    assert (tmp_path / "RESULT.json").exists() and (tmp_path / "truth.json").exists()
+    assert (tmp_path / "report" / "report.html").exists()
 
 
 def test_help_has_examples(capsys):

@@ -38,7 +38,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference, prepare_reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
-from .verdict import MAX_UNEXPLAINED, Verdict, judge_refined
+from .verdict import MAX_UNEXPLAINED, Verdict, decide, judge_refined
 
 MIN_MOVING_POINTS = 30
 # the quality heights: local planes of the lidar within this many spacings of a tie point; half a
@@ -207,7 +207,7 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
         results.append(replace(r, T_initial=None))
     best = max(results, key=lambda r: (r.confident, r.confidence))
     reasons = list(best.reasons)
-    if vertical.ambiguous:
+    if vertical.ambiguous and not best.confident:  # else the reference decided the vertical
         reasons.append("the vertical of the moving model is ambiguous (no dominant plane); give "
                        "a model with its cameras, or a starting pose (`initial`)")
     info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
@@ -216,15 +216,31 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
             "chosen": poses[results.index(best)].name}
     rivals = [r for r in results if r.confident and r is not best
               and not _same_answer(r, best, centre[None])]
+    if rivals:  # the lidar decides between them, as between the coarse stage's rivals
+        decided = _better_orientation([best, *rivals], mov_src, centre)
+        best, rivals = (decided, []) if decided is not None else (best, rivals)
     if rivals:
         reasons.append("two orientations of the vertical register confidently: the answer is "
                        "ambiguous")
-    confident = best.confident and not vertical.ambiguous and not rivals
+    confident = best.confident and not rivals
     inputs = replace(best.inputs, moving_args=_path_args(moving))
     return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
                    confidence=best.confidence if confident else min(best.confidence, 0.49),
                    levelling=info, inputs=inputs, seconds=sum(r.seconds for r in results),
                    reference_seconds=results[0].reference_seconds)
+
+
+def _better_orientation(results: list[RegistrationResult], mov_src: PointSource,
+                        centre: np.ndarray) -> RegistrationResult | None:
+    """Of confident registrations from different orientations that disagree, the one whose
+    refined fit explains the tie points' heights beyond doubt (:func:`~tiereg.verdict.decide`),
+    or ``None``."""
+    ref = results[0].reference
+    moving = mov_src.read().xyz - centre
+    to_local = Transform.from_translation(-ref.origin)
+    starts = [to_local @ r.T_ref_mov @ Transform.from_translation(centre) for r in results]
+    verdict = decide(moving, ref, starts, cell=max(r.cell_size for r in results))
+    return results[verdict.chosen] if verdict.confident else None
 
 
 def _same_answer(a: RegistrationResult, b: RegistrationResult, centre: np.ndarray) -> bool:
@@ -435,9 +451,14 @@ def register(
     elif fine != "none":
         fine_result = register_fine(T_local.apply(mov_local[keep]), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
-        if fine_result.refused:
-            # the surface does not confirm the pose: nothing vouches for it to the tie points'
-            # precision, and a fine answer that moves far contradicts it
+        vouched = verdict is not None and not fine_result.contradicts_coarse
+        if fine_result.refused and vouched:
+            # the verdict's refined fit already placed the tie points on the surface; a fine
+            # stage that finds nothing better leaves that pose as the answer
+            warnings.append(f"the fine stage kept the coarse answer: {fine_result.refused}")
+        elif fine_result.refused:
+            # nothing vouches for the pose to the tie points' precision, and a fine answer that
+            # moves far contradicts it
             confident = False
             start = "starting pose" if coarse == "none" else "coarse answer"
             advice = ("check the inputs (noise points in the lidar not classed as noise, a wrong "

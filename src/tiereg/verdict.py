@@ -5,13 +5,16 @@ and its strongest genuinely different rivals are each refined by the fine stage'
 robust 7-parameter fit of the tie points' heights to the reference surface
 (:func:`~tiereg.fine.lsm.vertical_observer`, :func:`~tiereg.fine.solver.solve_helmert`). Then:
 
-1. **Noise.** The tightest refined fit's robust spread (NMAD of its height residuals) is the
-   noise the data allow: ``tau = NOISE_MULTIPLE * spread``. A tie point is *explained* by a pose
-   when its height lies within ``tau`` of the surface there.
-2. **The answer** is the pose that explains the most tie points (where only the refined fits
-   tell two poses apart, they decide).
+1. **Noise.** The tightest refined fit's robust spread (NMAD of its height residuals), as a
+   share of the relief under the block (NMAD of the surface heights there), is the noise the
+   data allow. A tie point is *explained* by a pose when its height lies within
+   ``NOISE_MULTIPLE`` times that share of the pose's own relief from the surface: in proportion,
+   so that a pose which shrinks the block onto a flat patch gains nothing by it.
+2. **The answer** is the pose that explains the most independent tie points (where only the
+   refined fits tell two poses apart, they decide).
 3. **Distinctness.** Against each rival, the tie points one pose explains and the other does
-   not are counted both ways, ``b`` and ``c``; if the two poses were equally good each such
+   not are counted both ways, ``b`` and ``c``, each tie point as a share of the registration's
+   cell it lands in (points crowded into one cell sample one piece of surface); if the two poses were equally good each such
    point would be a fair coin, so ``z = (b - c) / sqrt(b + c)`` is a standard normal under that
    hypothesis (McNemar 1947). The answer must stand out from every rival by :data:`MIN_Z`.
    On flat, featureless ground every pose explains the heights alike and ``z`` stays small: the
@@ -71,12 +74,16 @@ class RefinedPose:
         return nmad(dz) if len(dz) >= 10 else math.inf
 
     @property
-    def unexplained(self) -> float:
-        """Residual spread over the spread of the surface heights under the tie points: near 0
-        when the pose explains the heights, about 1.4 when they are unrelated."""
+    def relief(self) -> float:
+        """NMAD of the surface heights under the tie points (0 with fewer than 10)."""
         z = self.surface_z[np.isfinite(self.dz)]
-        spread = nmad(z) if len(z) >= 10 else 0.0
-        return self.spread / spread if spread > 0 else math.inf
+        return nmad(z) if len(z) >= 10 else 0.0
+
+    @property
+    def unexplained(self) -> float:
+        """Residual spread over the relief under the tie points: near 0 when the pose explains
+        the heights, about 1.4 when they are unrelated."""
+        return self.spread / self.relief if self.relief > 0 else math.inf
 
 
 @dataclass(frozen=True)
@@ -88,8 +95,8 @@ class Verdict:
     confident: bool
     confidence: float
     reasons: tuple[str, ...]
-    noise: float  # the tightest refined spread: the noise the data allow
-    explained: tuple[int, ...]  # tie points each pose explains
+    noise: float  # the tightest refined spread over its relief: the noise the data allow
+    explained: tuple[float, ...]  # independent observations (cells) each pose explains
     z: tuple[float, ...]  # the answer against each pose (nan for itself)
 
     @property
@@ -101,12 +108,13 @@ class Verdict:
             "chosen": "coarse answer" if self.chosen == 0 else f"rival {self.chosen}",
             "confident": self.confident, "confidence": round(self.confidence, 4),
             "reasons": list(self.reasons), "noise": self.noise,
-            "explained_threshold": NOISE_MULTIPLE * self.noise,
+            "explained_within": NOISE_MULTIPLE * self.noise,  # of each pose's relief
             "poses": [{
                 "kappa_deg": math.degrees(p.T.parameters().kappa) % 360.0,
                 "scale": p.T.parameters().scale,
                 "converged": p.converged, "moved_cells": p.moved_cells,
-                "on_surface": p.on_surface, "spread": p.spread, "unexplained": p.unexplained,
+                "on_surface": p.on_surface, "spread": p.spread, "relief": p.relief,
+                "unexplained": p.unexplained,
                 "explained": n, "z": None if not math.isfinite(z) else z,
             } for p, n, z in zip(self.poses, self.explained, self.z)],
         }
@@ -166,13 +174,26 @@ def decide(moving: np.ndarray, reference: Reference, starts: list[Transform], *,
         return Verdict(0, poses, False, 0.0, (
             f"no pose puts {MIN_OVERLAP:.0%} of the tie points on the reference surface",),
             math.nan, (0,) * len(poses), (math.nan,) * len(poses))
-    noise = max(min(poses[i].spread for i in eligible), 1e-9)
-    tau = NOISE_MULTIPLE * noise
-    hits = [np.abs(np.nan_to_num(p.dz, nan=np.inf)) <= tau for p in poses]
-    counts = tuple(int(h.sum()) for h in hits)
-    best = max(eligible, key=lambda i: (counts[i], -poses[i].spread))
-    z = tuple(math.nan if j == best else _mcnemar(hits[best], hits[j]) for j in range(len(poses)))
+    # the noise as a share of the relief under the block, so that a pose which shrinks the
+    # block onto a flat patch (its heights scaled down with it) explains no more than it should
+    noise = max(min(poses[i].unexplained for i in eligible), 1e-9)
+    hits = [np.abs(np.nan_to_num(p.dz, nan=np.inf)) <= NOISE_MULTIPLE * noise * p.relief
+            for p in poses]
+    # tie points in one cell sample the same surface: each cell is one observation
+    weights = [_independence(p.T.apply(moving), cell) for p in poses]
+    counts = tuple(float(np.sum(w[h])) for h, w in zip(hits, weights))
+    best = max(eligible, key=lambda i: (counts[i], -poses[i].unexplained))
+    z = tuple(math.nan if j == best else
+              _mcnemar(hits[best], hits[j], weights[best], weights[j]) for j in range(len(poses)))
     return _judged(poses, best, counts, z, noise)
+
+
+def _independence(xyz: np.ndarray, cell: float) -> np.ndarray:
+    """Per point, one over the number of points sharing its ``cell``-sized square: a pose that
+    crowds the block into a few cells has that few independent observations."""
+    ij = np.floor(xyz[:, :2] / cell).astype(np.int64)
+    _, inverse, n = np.unique(ij, axis=0, return_inverse=True, return_counts=True)
+    return 1.0 / n[inverse.ravel()]
 
 
 def judge_refined(moving: np.ndarray, reference: Reference, coarse: CoarseResult, *,
@@ -185,13 +206,14 @@ def judge_refined(moving: np.ndarray, reference: Reference, coarse: CoarseResult
     return decide(moving, reference, starts, cell=cell)
 
 
-def _mcnemar(a: np.ndarray, b: np.ndarray) -> float:
-    """``(n(a, not b) - n(b, not a)) / sqrt(their sum)``: 0 where the two agree throughout."""
-    only_a, only_b = int(np.sum(a & ~b)), int(np.sum(b & ~a))
-    return (only_a - only_b) / math.sqrt(only_a + only_b) if only_a + only_b else 0.0
+def _mcnemar(a: np.ndarray, b: np.ndarray, w_a: np.ndarray, w_b: np.ndarray) -> float:
+    """``(n(a, not b) - n(b, not a)) / sqrt(their sum)``, each point counted with its pose's
+    independence weight: 0 where the two agree throughout."""
+    only_a, only_b = float(np.sum(w_a[a & ~b])), float(np.sum(w_b[b & ~a]))
+    return (only_a - only_b) / math.sqrt(only_a + only_b) if only_a + only_b > 0 else 0.0
 
 
-def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[int, ...],
+def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, ...],
             z: tuple[float, ...], noise: float) -> Verdict:
     chosen = poses[best]
     rivals = [v for v in z if not math.isnan(v)]

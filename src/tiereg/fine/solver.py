@@ -229,8 +229,8 @@ def solve_helmert(
             break
         step = np.zeros(7)
         step[free] = step_scaled / lever[free]
-        if not np.all(np.isfinite(step_scaled)):
-            break
+        if not np.all(np.isfinite(step_scaled)) or step[0] <= -0.5:
+            break  # a step that would halve the block or worse is a runaway, not a fit
         last = (Af, w, rr, q[ok], g[ok])
         dT = increment(step, centre)
         T = dT @ T
@@ -246,7 +246,8 @@ def solve_helmert(
         try:
             cov = sigma0**2 * np.linalg.inv(N)
             sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            if last is not None:  # errors correlated in space or by surface count too
+            if last is not None and last[0].shape[1] == len(N_free):  # errors correlated in
+                # space or by surface count too (from the last completed step's rows)
                 Af, w, rr, q_ok, g = last
                 groups = [spatial_blocks(q_ok[:, :2]), surface_classes(g)]
                 if hasattr(observe, "surface_class"):
