@@ -93,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
     def add(name: str, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_, epilog=EXAMPLES[name],
+        p = sub.add_parser(name, help=help_, description=help_, epilog=EXAMPLES.get(name),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         _add_common(p)
         return p
@@ -187,6 +187,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "the truth.")
     p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=0)
+
+    from .calibrate.cli import EXAMPLES as CALIBRATE_EXAMPLES, add_arguments as calibrate_args
+
+    EXAMPLES.setdefault("calibrate", CALIBRATE_EXAMPLES)
+    calibrate_args(add("calibrate", "Calibrate the cameras of a COLMAP MODEL against a lidar "
+                                    "REFERENCE (self-calibrating bundle adjustment)."))
     return parser
 
 
@@ -466,9 +472,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibrate.cli import command
+
+    return command(args)
+
+
 COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_report,
             "simulate": _cmd_simulate, "apply": _cmd_apply, "grid": _cmd_grid,
-            "info": _cmd_info, "demo": _cmd_demo}
+            "info": _cmd_info, "demo": _cmd_demo, "calibrate": _cmd_calibrate}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
