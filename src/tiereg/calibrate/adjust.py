@@ -31,6 +31,10 @@ log = logging.getLogger(__name__)
 # the registered positions of a bent block are metres off, and a prior of sigma s on M centres
 # spread over D also says the scale to s / D / sqrt(M), which must not decide the focal length
 GAUGE_SIGMA_M = 100.0
+# the focal length stays within this share of its input value: a block that does not determine
+# it (level ground seen from above) may otherwise collapse towards f = 0 with the cameras on the
+# ground, where every tie point lies on its plane
+FOCAL_BOUND = 0.1
 LOSS_PIXELS = 2.0  # robust loss scale in units of the pixel noise
 
 
@@ -84,6 +88,7 @@ class Adjustment:
     planes: PlaneConstraints | None
     centre_priors: dict[int, np.ndarray]  # image id -> prior camera centre
     refine_poses: bool = True
+    focal_start: dict[int, float] = field(default_factory=dict)  # the bounds' centre
     max_iterations: int = 60
     adjuster: object = None
     _keep: list = field(default_factory=list)
@@ -114,6 +119,10 @@ class Adjustment:
             if not problem.has_parameter_block(params):
                 continue
             held = [i for i in range(n) if i not in free]
+            for i in MODELS[cam.model.name]["focal"]:  # no collapse onto the ground
+                f0 = self.focal_start.get(cam_id, params[i])
+                problem.set_parameter_lower_bound(params, i, (1 - FOCAL_BOUND) * f0)
+                problem.set_parameter_upper_bound(params, i, (1 + FOCAL_BOUND) * f0)
             if len(held) == n:
                 problem.set_parameter_block_constant(params)
             elif held:

@@ -128,10 +128,13 @@ def _spread(patches: Patches, check: np.ndarray) -> float:
     return max(nmad(patches.distance_m[ok]) if ok.sum() >= 5 else 0.0, floor, 1e-3)
 
 
-def _control(patches: Patches, check: np.ndarray) -> np.ndarray:
-    """The control points: planar patches, not check points, lidar residual within
-    ``REJECT_SIGMAS`` times :func:`_spread` of the median."""
-    cand = patches.ok & ~check
+def _control(patches: Patches, check: np.ndarray,
+             previous: np.ndarray | None = None) -> np.ndarray:
+    """The control points: planar patches (or control points of the ``previous`` round, whose
+    patch may have just missed a rule where the point moved), not check points, lidar residual
+    within ``REJECT_SIGMAS`` times :func:`_spread` of the median."""
+    cand = patches.ok if previous is None else (patches.ok | previous)
+    cand = cand & ~check & np.isfinite(patches.distance_m)
     if not cand.any():
         return cand
     d = patches.distance_m[cand]
@@ -194,6 +197,23 @@ def _to_hold(cov: np.ndarray, labels: list[tuple[int, int]], rec, tol: Tolerance
         reason = _hold_reason(kind, s, tol, flag=flag)
         if reason is not None:
             out[(cid, i)] = reason
+    return out
+
+
+def _at_bound(rec, start: dict[int, np.ndarray], refine_idx) -> dict[tuple[int, int], str]:
+    """Refined focal lengths that ran to their bound: the block does not determine them."""
+    from .adjust import FOCAL_BOUND
+    from .model import MODELS
+
+    out = {}
+    for cid, cam in rec.cameras.items():
+        for i in MODELS[cam.model.name]["focal"]:
+            change = abs(cam.params[i] / start[cid][i] - 1)
+            if i in refine_idx.get(cid, ()) and change > 0.99 * FOCAL_BOUND:
+                out[(cid, i)] = (f"ran to {100 * FOCAL_BOUND:.0f} % off its input value: the "
+                                 "block does not separate the focal length from the flying "
+                                 "height (level ground seen from above); held at its input "
+                                 "value")
     return out
 
 
@@ -358,6 +378,7 @@ class _State:
     iterations: int = 0
     termination: str = ""
     params: np.ndarray | None = None  # the intrinsics after the previous round
+    start: dict = None  # the input intrinsics per camera
 
 
 def _settle(rec, lidar: LidarPatches, ids, check, st: _State, refine_idx, priors, refine_poses,
@@ -367,13 +388,14 @@ def _settle(rec, lidar: LidarPatches, ids, check, st: _State, refine_idx, priors
     for _ in range(max_rounds):
         st.rounds += 1
         planes = _planes(st.patches, st.control, ids, st.spread_m)
-        adj = Adjustment(rec, st.sigma_px, dict(refine_idx), planes, priors, refine_poses)
+        adj = Adjustment(rec, st.sigma_px, dict(refine_idx), planes, priors, refine_poses,
+                         focal_start={cid: float(v[0]) for cid, v in st.start.items()})
         summary = adj.solve()
         st.iterations += len(summary.ceres_summary.iterations) if hasattr(
             summary.ceres_summary, "iterations") else 0
         st.termination = str(summary.termination_type).rsplit(".", 1)[-1]
         st.patches = lidar.at(_points(rec)[1])
-        new = _control(st.patches, check)
+        new = _control(st.patches, check, st.control)
         spread = _spread(st.patches, check)
         changed = int((new != st.control).sum())
         params = np.concatenate([np.asarray(c.params) for _, c in sorted(rec.cameras.items())])
@@ -398,12 +420,12 @@ def _rounds(rec, start, ref, lidar: LidarPatches, ids, check, control, p0: Patch
     refine_idx = {cid: refine_indices(c.model.name, refine) for cid, c in rec.cameras.items()}
     priors = {iid: np.array(rec.images[iid].projection_center()) for iid in rec.reg_image_ids()}
     held: dict[tuple[int, int], str] = {}
-    st = _State(control, p0, _spread(p0, check), sigma_px)
+    st = _State(control, p0, _spread(p0, check), sigma_px, start=start)
     for _ in range(3):
         converged, adj = _settle(rec, lidar, ids, check, st, refine_idx, priors,
                                  "poses" in refine, max_rounds)
         cov, labels = reduced_covariance(adj)
-        new = _to_hold(cov, labels, rec, tol)
+        new = {**_to_hold(cov, labels, rec, tol), **_at_bound(rec, start, refine_idx)}
         if not new:
             break
         _hold(rec, start, refine_idx, new, held)

@@ -220,3 +220,30 @@ def flawed_model(block: CameraBlock, *, focal_error: float = 0.02, ignore_distor
 
     transform_model(rec, T_model_ref @ Transform.from_translation(origin))
     return rec, T_model_ref
+
+
+def flat_world(world):
+    """The world with level bare ground at height 0 everywhere (no relief, buildings or trees):
+    a nadir block over it cannot separate the focal length from the flying height."""
+    from dataclasses import replace
+
+    zero = np.zeros_like(world.dsm)
+    return replace(world, dtm=zero, dsm=zero.copy(), canopy=np.zeros_like(world.canopy),
+                   buildings=np.zeros_like(world.buildings))
+
+
+def fitted_registration(rec, block: CameraBlock) -> Transform:
+    """The similarity (model -> reference) that best fits the model's points to the true ones
+    (least squares, Umeyama 1991): a registration as good as the model's shape allows, for
+    calibrating without registering first."""
+    from ..calibrate.model import model_arrays
+
+    a = model_arrays(rec)
+    X, Y = a.xyz, block.xyz[a.point_ids - 1]
+    mx, my = X.mean(axis=0), Y.mean(axis=0)
+    U, S, Vt = np.linalg.svd((Y - my).T @ (X - mx) / len(X))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / ((X - mx) ** 2).sum() * len(X))
+    return Transform.from_similarity(s, R, my - s * R @ mx)

@@ -1,0 +1,126 @@
+"""tiereg calibrate on small simulated blocks with known cameras (a few seconds each)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pycolmap = pytest.importorskip("pycolmap")
+pytest.importorskip("pyceres")
+
+from tiereg.calibrate import calibrate  # noqa: E402
+from tiereg.simulate import ImageBlock, LidarSurvey, SceneSpec, make_scene, make_world  # noqa: E402
+from tiereg.simulate.cameras import (  # noqa: E402
+    CameraModel,
+    FlightPlan,
+    flat_world,
+    fitted_registration,
+    flawed_model,
+    make_camera_block,
+)
+
+CAMERA = CameraModel(2000, 1500, 2000.0, 1003.0, 748.0, k1=-0.03, k2=0.005)
+
+
+def _scene(kind: str, *, flat: bool = False):
+    spec = SceneSpec(kind=kind, seed=4, world_size_m=1400, lidar_size_m=1000,
+                     survey=LidarSurvey(density_per_m2=1.5, gap_probability=0.0),
+                     block=ImageBlock(side_m=700, tie_points_per_km2=6000,
+                                      blunder_fraction=0.02),
+                     block_heading_deg=20.0)
+    world = make_world(kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=spec.seed)
+    return make_scene(spec, world=flat_world(world) if flat else world)
+
+
+@pytest.fixture(scope="module")
+def hilly():
+    return _scene("farmland")
+
+
+def _model(scene, tmp_path, name, *, plan, focal_error=0.02, ignore=True, camera=CAMERA):
+    """A flawed model on disk and its registration (fitted to the true camera centres)."""
+    block = make_camera_block(scene, plan, camera, max_points=2500)
+    rec, _ = flawed_model(block, focal_error=focal_error, ignore_distortion=ignore)
+    folder = tmp_path / name
+    folder.mkdir()
+    rec.write_binary(str(folder))
+    return folder, fitted_registration(rec, block)
+
+
+CROSS = FlightPlan(strips=3, images_per_strip=5, flying_height_m=300.0, cross=True, tilt_deg=8)
+
+
+def test_focal_and_distortion_recovered(hilly, tmp_path):
+    folder, T = _model(hilly, tmp_path, "m", plan=CROSS)
+    r = calibrate(folder, hilly.lidar.xyz, T_ref_mov=T)
+    cam = r.camera()
+    assert r.confident, r.reasons
+    assert not cam.is_held("f") and not cam.is_held("k1")
+    # from 2 % off and no distortion: focal within 0.3 %, k1 within 10 %
+    assert abs(cam.value("f") / CAMERA.focal_px - 1) < 3e-3
+    assert abs(cam.value("k1") / CAMERA.k1 - 1) < 0.10
+    assert abs(cam.value("f", after=False) / CAMERA.focal_px - 1) > 0.019
+    assert r.check_after.rmse_z < 0.5 * r.check_before.rmse_z
+
+
+def test_nothing_to_calibrate_stays(hilly, tmp_path):
+    folder, T = _model(hilly, tmp_path, "m", plan=CROSS, focal_error=0.0, ignore=False)
+    cam = calibrate(folder, hilly.lidar.xyz, T_ref_mov=T).camera()
+    for name in ("f", "k1", "k2"):
+        change = cam.value(name) - cam.value(name, after=False)
+        sigma = cam.sigma[cam.names.index(name)]
+        assert sigma is not None and abs(change) < 4 * sigma, (name, change, sigma)
+
+
+@pytest.mark.slow
+def test_flat_nadir_block_holds_the_focal_length(tmp_path):
+    scene = _scene("farmland", flat=True)
+    plan = FlightPlan(strips=3, images_per_strip=5, flying_height_m=300.0)
+    folder, T = _model(scene, tmp_path, "m", plan=plan)
+    r = calibrate(folder, scene.lidar.xyz, T_ref_mov=T)
+    cam = r.camera()
+    assert cam.is_held("f")
+    assert "flying height" in dict(cam.held)["f"]
+    assert cam.value("f") == cam.value("f", after=False)  # held at its input value
+    assert cam.to_dict()["intrinsics"]["f"]["held"] is True
+
+
+def test_cli_bad_input_one_line(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "tiereg.cli", "calibrate", str(tmp_path / "no"),
+                          str(tmp_path / "lidar.laz"), "-o", str(tmp_path / "out")],
+                         capture_output=True, text=True)
+    assert out.returncode == 2
+    assert len(out.stderr.strip().splitlines()) == 1
+    assert "MODEL" in out.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_outputs_readable(hilly, tmp_path):
+    import laspy
+
+    folder, T = _model(hilly, tmp_path, "m", plan=CROSS)
+    (tmp_path / "RESULT.json").write_text(json.dumps({"T_ref_mov": T.matrix.tolist()}))
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales = np.array([0.001] * 3)
+    header.offsets = np.floor(hilly.lidar.xyz.min(axis=0))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = hilly.lidar.xyz.T
+    las.write(str(tmp_path / "lidar.laz"))
+    out = tmp_path / "out"
+    run = subprocess.run([sys.executable, "-m", "tiereg.cli", "calibrate", str(folder),
+                          str(tmp_path / "lidar.laz"), "-o", str(out), "--report", "-q",
+                          "--result", str(tmp_path / "RESULT.json")],
+                         capture_output=True, text=True)
+    assert run.returncode in (0, 3), run.stderr
+    data = json.loads((out / "CALIBRATION.json").read_text())
+    assert data["cameras"][0]["intrinsics"]["f"]["after"] > 0
+    rec = pycolmap.Reconstruction(str(out / "model"))
+    assert rec.num_reg_images() == 30
+    assert (out / "model" / "cameras.txt").is_file()
+    centre = np.mean([rec.images[i].projection_center() for i in rec.reg_image_ids()], axis=0)
+    assert np.hypot(*(centre[:2] - hilly.lidar.xyz[:, :2].mean(axis=0))) < 600  # lidar frame
+    assert "data:image/png;base64" in (out / "report" / "report.html").read_text()
