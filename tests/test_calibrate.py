@@ -54,6 +54,7 @@ def _model(scene, tmp_path, name, *, plan, focal_error=0.02, ignore=True, camera
 CROSS = FlightPlan(strips=3, images_per_strip=5, flying_height_m=300.0, cross=True, tilt_deg=8)
 
 
+@pytest.mark.slow
 def test_focal_and_distortion_recovered(hilly, tmp_path):
     folder, T = _model(hilly, tmp_path, "m", plan=CROSS)
     r = calibrate(folder, hilly.lidar.xyz, T_ref_mov=T)
@@ -67,6 +68,7 @@ def test_focal_and_distortion_recovered(hilly, tmp_path):
     assert r.check_after.rmse_z < 0.5 * r.check_before.rmse_z
 
 
+@pytest.mark.slow
 def test_nothing_to_calibrate_stays(hilly, tmp_path):
     folder, T = _model(hilly, tmp_path, "m", plan=CROSS, focal_error=0.0, ignore=False)
     cam = calibrate(folder, hilly.lidar.xyz, T_ref_mov=T).camera()
@@ -99,6 +101,7 @@ def test_cli_bad_input_one_line(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_cli_outputs_readable(hilly, tmp_path):
     import laspy
 
