@@ -9,8 +9,9 @@ See :func:`~tiereg.calibrate.run.calibrate` and docs/calibration.md.
 
 from __future__ import annotations
 
+from .degenerate import TOLERANCE, Tolerance
 from .result import CalibrationResult, CameraCalibration
-from .run import REFINE_KINDS, TOLERANCE, Tolerance, calibrate, load_transform
+from .run import REFINE_KINDS, calibrate, load_transform
 
 __all__ = ["REFINE_KINDS", "TOLERANCE", "CalibrationResult", "CameraCalibration", "Tolerance",
            "calibrate", "load_transform"]

@@ -3,7 +3,7 @@
 One Ceres problem (pycolmap's bundle adjuster, through pyceres) holds
 
 * the reprojection error of every observation (COLMAP's own cost functions, the camera's own
-  model), with a robust (Cauchy) loss at twice the pixel noise;
+  model), with a robust (soft L1) loss at twice the pixel noise;
 * one lidar constraint per control point: the normal distance of the tie point to its lidar
   plane, divided by the plane's precision (on level patches the height), robust too;
 * a weak prior on the horizontal position of every camera centre (the registration's), which
@@ -17,6 +17,7 @@ the normal matrix at the solution), from which degenerate parameters are found.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +37,11 @@ GAUGE_SIGMA_M = 100.0
 # ground, where every tie point lies on its plane
 FOCAL_BOUND = 0.1
 LOSS_PIXELS = 2.0  # robust loss scale in units of the pixel noise
+# the robust loss of every residual: soft L1 (Ceres' SoftLOneLoss) converges in a few
+# iterations where Cauchy's loss, not convex, needed tens of short steps from a bent model
+LOSS = "soft_l1"
+# the weight of a plane constraint along the plane, relative to across it (see plane_cost)
+PLANE_EPS = 1e-8
 
 
 def _pyceres():
@@ -56,26 +62,35 @@ class PlaneConstraints:
     loss_widening: float = 1.0  # the robust loss of the planes this many times wider
 
 
-def plane_cost(normal: np.ndarray, centroid: np.ndarray, weight: float):
-    """A pyceres cost: ``weight * normal . (X - centroid)`` on one 3-D point."""
+def plane_cost(normal: np.ndarray, point: np.ndarray, weight: float):
+    """A native Ceres cost on one 3-D point X: ``weight * normal . (X - point)``, where ``point``
+    lies on the plane (the tie point's start projected onto it).
+
+    A point-to-plane distance is linear in X, so it is Ceres' ``NormalPrior``
+    ``||A (X - point)||`` with ``A^T A = g g^T + EPS |g|^2 I`` (``g = weight * normal``): the
+    normal distance at full weight and the position along the plane at a weight ``1 / EPS``
+    times lower, which keeps the information matrix invertible and pulls nowhere measurable
+    (``point`` is where the tie point starts). Being C++, the cost runs in Ceres' threads.
+    """
+    g = np.asarray(normal, dtype=np.float64) * weight
+    info = np.outer(g, g) + PLANE_EPS * float(g @ g) * np.eye(3)
+    return _pyceres().factors.NormalPrior(np.asarray(point, dtype=np.float64),
+                                          np.linalg.inv(info))
+
+
+def robust_loss(scale: float):
+    """The pyceres loss of :data:`LOSS` at ``scale``."""
     pyceres = _pyceres()
+    return {"soft_l1": pyceres.SoftLOneLoss, "cauchy": pyceres.CauchyLoss,
+            "huber": pyceres.HuberLoss}[LOSS](scale)
 
-    class PlaneCost(pyceres.CostFunction):
-        def __init__(self) -> None:
-            pyceres.CostFunction.__init__(self)
-            self.set_num_residuals(1)
-            self.set_parameter_block_sizes([3])
-            self._g = np.asarray(normal, dtype=np.float64) * weight
-            self._c = float(self._g @ centroid)
 
-        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres' name
-            x = parameters[0]
-            residuals[0] = self._g[0] * x[0] + self._g[1] * x[1] + self._g[2] * x[2] - self._c
-            if jacobians is not None and jacobians[0] is not None:
-                jacobians[0][:] = self._g
-            return True
-
-    return PlaneCost()
+def solver_threads() -> int:
+    """Threads for Ceres: the cores this process may use (all lidar costs are native)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
 
 
 @dataclass
@@ -89,60 +104,80 @@ class Adjustment:
     centre_priors: dict[int, np.ndarray]  # image id -> prior camera centre
     refine_poses: bool = True
     focal_start: dict[int, float] = field(default_factory=dict)  # the bounds' centre
-    max_iterations: int = 60
+    max_iterations: int = 100
+    num_threads: int = 0  # 0: solver_threads()
     adjuster: object = None
     _keep: list = field(default_factory=list)
 
-    def build(self) -> None:
+    def _options(self):
         pycolmap = pycolmap_module()
-        pyceres = _pyceres()
         options = pycolmap.BundleAdjustmentOptions(
             refine_focal_length=True, refine_principal_point=True, refine_extra_params=True,
             refine_rig_from_world=self.refine_poses, print_summary=False)
-        options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, LOSS.upper())
         options.ceres.loss_function_scale = LOSS_PIXELS * self.pixel_sigma
-        options.ceres.solver_options.max_num_iterations = self.max_iterations
-        options.ceres.solver_options.function_tolerance = 1e-7
-        # one thread: the lidar costs are Python, and Ceres threads calling Python would wait on
-        # the interpreter lock that the solving thread holds
-        options.ceres.solver_options.num_threads = 1
+        solver = options.ceres.solver_options
+        solver.max_num_iterations = self.max_iterations
+        solver.function_tolerance = 1e-8
+        solver.num_threads = self.num_threads or solver_threads()
+        # every cost is native, so Ceres may evaluate them on all threads at any problem size
+        options.ceres.min_num_residuals_for_cpu_multi_threading = 1
+        return options
+
+    def build(self) -> None:
+        pycolmap = pycolmap_module()
         config = pycolmap.BundleAdjustmentConfig()
         for image_id in self.rec.reg_image_ids():
             config.add_image(image_id)
-        self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, self.rec)
-        problem = self.adjuster.problem
+        self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(
+            self._options(), config, self.rec)
+        self._intrinsics(self.adjuster.problem)
+        if self.planes is not None:
+            self._planes(self.adjuster.problem)
+        self._centre_priors(self.adjuster.problem)
+
+    def _intrinsics(self, problem) -> None:
+        """Held intrinsics fixed (``SubsetManifold``), focal lengths bounded."""
+        pyceres = _pyceres()
         for cam_id, cam in self.rec.cameras.items():
             free = self.refine.get(cam_id, ())
-            n = len(cam.params)
             params = cam.params
-            self._keep.append(params)
+            self._keep.append(params)  # Ceres keeps raw pointers: the arrays must outlive it
             if not problem.has_parameter_block(params):
                 continue
+            n = len(params)
             held = [i for i in range(n) if i not in free]
             for i in MODELS[cam.model.name]["focal"]:  # no collapse onto the ground
-                f0 = self.focal_start.get(cam_id, params[i])
-                problem.set_parameter_lower_bound(params, i, (1 - FOCAL_BOUND) * f0)
-                problem.set_parameter_upper_bound(params, i, (1 + FOCAL_BOUND) * f0)
+                if i in free:
+                    f0 = self.focal_start.get(cam_id, params[i])
+                    problem.set_parameter_lower_bound(params, i, (1 - FOCAL_BOUND) * f0)
+                    problem.set_parameter_upper_bound(params, i, (1 + FOCAL_BOUND) * f0)
             if len(held) == n:
                 problem.set_parameter_block_constant(params)
             elif held:
                 manifold = pyceres.SubsetManifold(n, held)
                 self._keep.append(manifold)
                 problem.set_manifold(params, manifold)
-        loss = pyceres.CauchyLoss(LOSS_PIXELS * self.pixel_sigma)
-        self._keep.append(loss)  # Ceres keeps raw pointers: the objects must outlive it
-        if self.planes is not None:
-            wide = pyceres.CauchyLoss(LOSS_PIXELS * self.pixel_sigma * self.planes.loss_widening)
-            self._keep.append(wide)
-            for pid, c, nrm, s in zip(self.planes.point_ids, self.planes.centroids,
-                                      self.planes.normals, self.planes.sigma_m):
-                xyz = self.rec.points3D[int(pid)].xyz
-                self._keep.append(xyz)
-                if problem.has_parameter_block(xyz):
-                    cost = plane_cost(nrm, c, self.pixel_sigma / s)
-                    self._keep.append(cost)
-                    problem.add_residual_block(cost, wide, [xyz])
+
+    def _planes(self, problem) -> None:
+        """One native plane cost per control point, robust at the planes' width."""
+        pl = self.planes
+        wide = robust_loss(LOSS_PIXELS * self.pixel_sigma * pl.loss_widening)
+        self._keep.append(wide)
+        for pid, c, nrm, s in zip(pl.point_ids, pl.centroids, pl.normals, pl.sigma_m):
+            xyz = self.rec.points3D[int(pid)].xyz
+            self._keep.append(xyz)
+            if not problem.has_parameter_block(xyz):
+                continue
+            unit = nrm / np.linalg.norm(nrm)
+            on_plane = xyz - float(unit @ (xyz - c)) * unit
+            cost = plane_cost(nrm, on_plane, self.pixel_sigma / s)
+            self._keep.append(cost)
+            problem.add_residual_block(cost, wide, [xyz])
+
+    def _centre_priors(self, problem) -> None:
         import pycolmap.cost_functions as cf
+
         cov = np.diag([GAUGE_SIGMA_M**2, GAUGE_SIGMA_M**2, 1e8]) / self.pixel_sigma**2
         for image_id, prior in self.centre_priors.items():
             pose = self.rec.frames[self.rec.images[image_id].frame_id].rig_from_world.params

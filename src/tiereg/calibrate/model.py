@@ -124,6 +124,18 @@ def write_model(rec, folder: str | os.PathLike[str]) -> Path:
 
 
 @dataclass(frozen=True, eq=False)
+class Observations:
+    """The model's observations in a fixed order (they do not change during calibration)."""
+
+    image_ids: np.ndarray = field(repr=False)  # (M,)
+    camera_of_image: np.ndarray = field(repr=False)  # (M,) camera id of each image
+    point_ids: np.ndarray = field(repr=False)  # (N,)
+    obs_image: np.ndarray = field(repr=False)  # (K,) row into the image arrays
+    obs_point: np.ndarray = field(repr=False)  # (K,) row into the point arrays
+    uv: np.ndarray = field(repr=False)  # (K, 2) observed pixel positions
+
+
+@dataclass(frozen=True, eq=False)
 class ModelArrays:
     """The model as arrays (one frame): poses, points and observations in a fixed order."""
 
@@ -138,19 +150,14 @@ class ModelArrays:
     uv: np.ndarray = field(repr=False)  # (K, 2) observed pixel positions
 
 
-def model_arrays(rec) -> ModelArrays:
-    """Arrays of a reconstruction's registered images, points and their observations."""
+def observations(rec) -> Observations:
+    """The registered images, points and their observations of a reconstruction."""
     image_ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
     row_of_image = {int(i): k for k, i in enumerate(image_ids)}
-    R, C, cams = [], [], []
-    for i in image_ids:
-        im = rec.images[int(i)]
-        pose = im.cam_from_world()
-        R.append(pose.rotation.matrix())
-        C.append(im.projection_center())
-        cams.append(im.camera_id)
+    cams = np.array([rec.images[int(i)].camera_id for i in image_ids], dtype=np.int64)
     point_ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
-    xyz = np.array([rec.points3D[int(p)].xyz for p in point_ids]).reshape(-1, 3)
+    xy = {int(i): np.array([p.xy for p in rec.images[int(i)].points2D]).reshape(-1, 2)
+          for i in image_ids}
     oi, op, uv = [], [], []
     for k, pid in enumerate(point_ids):
         for el in rec.points3D[int(pid)].track.elements:
@@ -159,11 +166,44 @@ def model_arrays(rec) -> ModelArrays:
                 continue
             oi.append(row)
             op.append(k)
-            uv.append(rec.images[int(el.image_id)].points2D[el.point2D_idx].xy)
-    return ModelArrays(image_ids, np.array(cams, dtype=np.int64), np.array(R).reshape(-1, 3, 3),
-                       np.array(C).reshape(-1, 3), point_ids, xyz,
-                       np.array(oi, dtype=np.int64), np.array(op, dtype=np.int64),
-                       np.array(uv, dtype=np.float64).reshape(-1, 2))
+            uv.append(xy[int(el.image_id)][el.point2D_idx])
+    return Observations(image_ids, cams, point_ids, np.array(oi, dtype=np.int64),
+                        np.array(op, dtype=np.int64),
+                        np.array(uv, dtype=np.float64).reshape(-1, 2))
+
+
+def poses_points(rec, obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rotations (world -> camera) ``(M, 3, 3)`` and centres ``(M, 3)`` of the images and
+    the positions ``(N, 3)`` of the points of ``obs``, as they are now."""
+    R = np.array([rec.images[int(i)].cam_from_world().rotation.matrix()
+                  for i in obs.image_ids]).reshape(-1, 3, 3)
+    C = np.array([rec.images[int(i)].projection_center() for i in obs.image_ids]).reshape(-1, 3)
+    xyz = np.array([rec.points3D[int(p)].xyz for p in obs.point_ids]).reshape(-1, 3)
+    return R, C, xyz
+
+
+def model_arrays(rec, obs: Observations | None = None) -> ModelArrays:
+    """Arrays of a reconstruction's registered images, points and their observations."""
+    obs = observations(rec) if obs is None else obs
+    R, C, xyz = poses_points(rec, obs)
+    return ModelArrays(obs.image_ids, obs.camera_of_image, R, C, obs.point_ids, xyz,
+                       obs.obs_image, obs.obs_point, obs.uv)
+
+
+def reprojection(rec, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection residuals ``(K, 2)`` (pixels) of the observations and the camera id of
+    each, with the cameras, poses and points as they are now."""
+    R, C, xyz = poses_points(rec, obs)
+    res = np.full((len(obs.uv), 2), np.nan)
+    cams = obs.camera_of_image[obs.obs_image]
+    for cid in np.unique(cams):
+        cam = rec.cameras[int(cid)]
+        k = np.flatnonzero(cams == cid)
+        pc = np.einsum("kij,kj->ki", R[obs.obs_image[k]], xyz[obs.obs_point[k]]
+                       - C[obs.obs_image[k]])
+        proj = np.asarray(cam.img_from_cam(pc), dtype=np.float64).reshape(-1, 2)
+        res[k] = proj - obs.uv[k]
+    return res, cams
 
 
 def build_model(cameras: dict[int, tuple[str, int, int, np.ndarray]], camera_of_image: np.ndarray,

@@ -72,9 +72,10 @@ class CameraCalibration:
 class CalibrationResult:
     """Everything a calibration found; ``to_dict()`` is CALIBRATION.json.
 
-    ``check_before``/``check_after``: height residuals against the lidar planes at the held-out
-    check points (tie points on planar patches not used as control), after the registration
-    alone and after the calibration. ``model``: the calibrated ``pycolmap.Reconstruction`` in
+    ``check_before``/``check_after``: height residuals against the lidar surface at the held-out
+    check points (tie points on strictly planar patches, never used as control; the
+    ``n_check_outliers`` of them off the lidar, such as vehicles, are left out), after the
+    registration alone and after the calibration. ``model``: the calibrated ``pycolmap.Reconstruction`` in
     the reference frame (``None`` when the calibration did not run).
     """
 
@@ -95,6 +96,7 @@ class CalibrationResult:
     rounds: int
     seconds: float
     refined: tuple[str, ...]
+    n_check_outliers: int = 0  # check points left out of the statistics (off the lidar)
     warnings: tuple[str, ...] = ()
     solver: dict[str, Any] = field(default_factory=dict)
     inputs: dict[str, Any] = field(default_factory=dict)
@@ -122,7 +124,8 @@ class CalibrationResult:
             "reprojection_rms_px": {"before": self.reprojection_rms_before_px,
                                     "after": self.reprojection_rms_after_px},
             "pixel_sigma_px": self.pixel_sigma_px,
-            "lidar_check_points": {"count": self.n_check, "before": stats(self.check_before),
+            "lidar_check_points": {"count": self.n_check, "outliers": self.n_check_outliers,
+                                   "before": stats(self.check_before),
                                    "after": stats(self.check_after)},
             "lidar_control_points": {"count": self.n_control,
                                      "before": stats(self.control_before),

@@ -15,12 +15,10 @@
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,46 +27,35 @@ from ..errors import InputError
 from ..quality import HeightStats
 from ..robust import nmad
 from ..transform import Transform
-from .adjust import Adjustment, PlaneConstraints, reduced_covariance, refine_indices
+from .adjust import refine_indices
+from .degenerate import TOLERANCE, Tolerance
 from .lidar import LidarPatches, Patches
-from .model import model_arrays, pycolmap_module, read_model, transform_model
+from .model import observations, poses_points, read_model, reprojection, transform_model
 from .result import PARAM_NAMES, CalibrationResult, CameraCalibration
+from .rounds import (
+    MAX_ROUNDS,
+    Outcome,
+    Rounds,
+    check_split,
+    pixel_sigma,
+    run_rounds,
+    select_control,
+    spread,
+)
 
 log = logging.getLogger(__name__)
 
 REFINE_KINDS = ("focal", "principal", "distortion", "poses")
-CHECK_EVERY = 5  # one tie point in five on a planar patch is a held-out check point
-REJECT_SIGMAS = 3.0
-MAX_ROUNDS = 5
-SETTLED_CHANGE = 2e-5  # largest relative change of an intrinsic between settled rounds
 MIN_CONTROL = 10
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """Standard deviations that decide what the block determines. Above ``hold_*`` an intrinsic
-    is not determined (a degenerate geometry): it is held at its input value. Between
-    ``flag_*`` and ``hold_*`` it is refined and flagged as weakly determined. Focal length
-    relative; principal point in pixels; distortion as the displacement it makes at the image
-    corner, in pixels."""
-
-    hold_focal_rel: float = 0.01
-    hold_principal_px: float = 5.0
-    hold_distortion_px: float = 2.0
-    flag_focal_rel: float = 3e-4
-    flag_principal_px: float = 0.3
-    flag_distortion_px: float = 0.3
-
-
-TOLERANCE = Tolerance()
+CHECK_OUTLIER_NMADS = 5.0
 
 
 def _registration(model: Path, reference, T_ref_mov, reference_format):
     """``(T_ref_mov, confident, Reference, reasons)`` from a registration or as given."""
     from ..io import open_points
     from ..io.base import ArraySource
-    from ..points import PointSet
     from ..pipeline import register
+    from ..points import PointSet
     from ..reference import point_spacing, prepare_reference
 
     if T_ref_mov is None:
@@ -84,159 +71,15 @@ def _registration(model: Path, reference, T_ref_mov, reference_format):
     return T_ref_mov, True, ref, ()
 
 
-def _reprojection(rec) -> tuple[np.ndarray, np.ndarray]:
-    """Reprojection residuals ``(K, 2)`` (pixels) and the camera id of each observation."""
-    a = model_arrays(rec)
-    res = np.full((len(a.uv), 2), np.nan)
-    cams = a.camera_of_image[a.obs_image]
-    for cid in np.unique(cams):
-        cam = rec.cameras[int(cid)]
-        k = np.flatnonzero(cams == cid)
-        pc = np.einsum("kij,kj->ki", a.R_cam_world[a.obs_image[k]],
-                       a.xyz[a.obs_point[k]] - a.centres[a.obs_image[k]])
-        proj = np.asarray(cam.img_from_cam(pc), dtype=np.float64).reshape(-1, 2)
-        res[k] = proj - a.uv[k]
-    return res, cams
-
-
 def _rms(res: np.ndarray) -> float:
     ok = np.isfinite(res).all(axis=1)
     return float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1)))) if ok.any() else float("nan")
-
-
-def _points(rec) -> tuple[np.ndarray, np.ndarray]:
-    ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
-    return ids, np.array([rec.points3D[int(i)].xyz for i in ids]).reshape(-1, 3)
-
-
-def _check_split(xyz: np.ndarray) -> np.ndarray:
-    """Every ``CHECK_EVERY``-th point in a spatial order (a Hilbert-like interleave of a grid):
-    check points spread evenly over the block."""
-    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
-    cell = np.floor((xyz[:, :2] - lo) / np.maximum(hi - lo, 1e-9) * 64).clip(0, 63).astype(int)
-    order = np.lexsort((cell[:, 1] * (1 - 2 * (cell[:, 0] % 2)), cell[:, 0]))
-    check = np.zeros(len(xyz), bool)
-    check[order[CHECK_EVERY // 2 :: CHECK_EVERY]] = True
-    return check
-
-
-def _spread(patches: Patches, check: np.ndarray) -> float:
-    """The robust spread of the lidar residuals of points no plane holds (the check points):
-    what the tie points' heights are worth against the lidar now."""
-    ok = patches.ok & check
-    floor = 3.0 * float(np.median(patches.sigma_m[patches.ok])) if patches.ok.any() else 1e-3
-    return max(nmad(patches.distance_m[ok]) if ok.sum() >= 5 else 0.0, floor, 1e-3)
-
-
-def _control(patches: Patches, check: np.ndarray,
-             previous: np.ndarray | None = None) -> np.ndarray:
-    """The control points: planar patches (or control points of the ``previous`` round, whose
-    patch may have just missed a rule where the point moved), not check points, lidar residual
-    within ``REJECT_SIGMAS`` times :func:`_spread` of the median."""
-    cand = patches.ok if previous is None else (patches.ok | previous)
-    cand = cand & ~check & np.isfinite(patches.distance_m)
-    if not cand.any():
-        return cand
-    d = patches.distance_m[cand]
-    keep = np.abs(d - np.median(d)) <= REJECT_SIGMAS * _spread(patches, check)
-    out = np.zeros_like(cand)
-    out[np.flatnonzero(cand)[keep]] = True
-    return out
 
 
 def _stats(patches: Patches, mask: np.ndarray) -> HeightStats | None:
     if not mask.any():
         return None
     return HeightStats.from_dz(patches.dz_m[mask], int(mask.sum()))
-
-
-def _sigma_shown(kind: str, sigma: float, value: float, corner: float, power: int,
-                 focal: float) -> float:
-    """The standard deviation in the units of :class:`Tolerance`."""
-    if kind == "focal":
-        return sigma / abs(value)
-    if kind == "distortion":
-        return sigma * focal * corner ** (power + 1)
-    return sigma
-
-
-def _hold_reason(kind: str, s: float, tol: Tolerance, *, flag: bool = False) -> str | None:
-    """Why a refined intrinsic with standard deviation ``s`` (units of :class:`Tolerance`)
-    must be held (or, with ``flag``, is weakly determined), or ``None``."""
-    pre = "flag" if flag else "hold"
-    limit = getattr(tol, f"{pre}_{kind}_rel" if kind == "focal" else f"{pre}_{kind}_px")
-    if s <= limit:
-        return None
-    what = {"focal": f"sigma {100 * s:.3f} % > {100 * limit:.3f} %",
-            "principal": f"sigma {s:.2f} px > {limit} px",
-            "distortion": f"sigma {s:.2f} px at the image corner > {limit} px"}[kind]
-    why = {"focal": "the block does not separate the focal length from the flying height "
-                    "(level ground seen from above)",
-           "principal": "the block does not separate the principal point from the camera "
-                        "tilts (parallel strips)",
-           "distortion": "too few observations toward the image edges"}[kind]
-    return f"{what}: {why}; " + ("weakly determined" if flag else "held at its input value")
-
-
-def _to_hold(cov: np.ndarray, labels: list[tuple[int, int]], rec, tol: Tolerance, *,
-             flag: bool = False) -> dict[tuple[int, int], str]:
-    """The refined intrinsics the adjustment does not determine (with ``flag``: determines
-    weakly), with the reason."""
-    from .model import MODELS
-
-    out = {}
-    for k, (cid, i) in enumerate(labels):
-        cam = rec.cameras[cid]
-        kinds = MODELS[cam.model.name]
-        kind = next(n for n, idx in kinds.items() if i in idx)
-        focal = float(np.mean([cam.params[j] for j in kinds["focal"]]))
-        corner = math.hypot(cam.width / 2, cam.height / 2) / focal
-        power = 2 * (kinds["distortion"].index(i) + 1) if kind == "distortion" else 0
-        s = _sigma_shown(kind, math.sqrt(max(cov[k, k], 0.0)), float(cam.params[i]), corner,
-                         power, focal)
-        reason = _hold_reason(kind, s, tol, flag=flag)
-        if reason is not None:
-            out[(cid, i)] = reason
-    return out
-
-
-def _at_bound(rec, start: dict[int, np.ndarray], refine_idx) -> dict[tuple[int, int], str]:
-    """Refined focal lengths that ran to their bound: the block does not determine them."""
-    from .adjust import FOCAL_BOUND
-    from .model import MODELS
-
-    out = {}
-    for cid, cam in rec.cameras.items():
-        for i in MODELS[cam.model.name]["focal"]:
-            change = abs(cam.params[i] / start[cid][i] - 1)
-            if i in refine_idx.get(cid, ()) and change > 0.99 * FOCAL_BOUND:
-                out[(cid, i)] = (f"ran to {100 * FOCAL_BOUND:.0f} % off its input value: the "
-                                 "block does not separate the focal length from the flying "
-                                 "height (level ground seen from above); held at its input "
-                                 "value")
-    return out
-
-
-def _planes(patches: Patches, control: np.ndarray, ids: np.ndarray,
-            spread: float) -> PlaneConstraints:
-    """The control points' planes, with a robust loss as wide as the residuals' spread (in the
-    first round that is the model's whole deformation: no point is taken for an outlier)."""
-    rows = np.flatnonzero(control)
-    sigma = patches.sigma_m[rows]
-    return PlaneConstraints(ids[rows], patches.centroid[rows], patches.normal[rows], sigma,
-                            max(1.0, spread / float(np.median(sigma))))
-
-
-def _hold(rec, start: dict[int, np.ndarray], refine_idx: dict[int, tuple[int, ...]],
-          new: dict[tuple[int, int], str], held: dict[tuple[int, int], str]) -> None:
-    """Put the parameters in ``new`` back to their start value and stop refining them."""
-    for (cid, i), reason in new.items():
-        log.info("camera %d: holding parameter %d (%s)", cid, i, reason)
-        held[(cid, i)] = reason
-        refine_idx[cid] = tuple(j for j in refine_idx[cid] if j != i)
-        params = np.array(rec.cameras[cid].params)
-        params[i] = start[cid][i]
-        rec.cameras[cid].params = params
 
 
 def _parse_refine(refine) -> tuple[str, ...]:
@@ -291,14 +134,14 @@ def _camera_results(rec, start: dict[int, np.ndarray], cov: np.ndarray, labels: 
     return tuple(out)
 
 
-def _per_camera_rms(rec) -> dict[int, float]:
-    res, cams = _reprojection(rec)
+def _per_camera_rms(rec, obs) -> dict[int, float]:
+    res, cams = reprojection(rec, obs)
     return {int(c): _rms(res[cams == c]) for c in np.unique(cams)}
 
 
 def calibrate(model, reference, *, refine=REFINE_KINDS, T_ref_mov=None, result=None,
               reference_format: str | None = None, tolerance: Tolerance = TOLERANCE,
-              max_rounds: int = MAX_ROUNDS) -> CalibrationResult:
+              max_rounds: int = MAX_ROUNDS, num_threads: int = 0) -> CalibrationResult:
     """Calibrate the cameras of the COLMAP ``model`` against the lidar ``reference``.
 
     Parameters
@@ -315,6 +158,8 @@ def calibrate(model, reference, *, refine=REFINE_KINDS, T_ref_mov=None, result=N
         RESULT.json of ``tiereg register``); by default the model is registered first.
     tolerance
         The standard deviations above which an intrinsic is held (:class:`Tolerance`).
+    num_threads
+        Ceres' threads (0: the cores this process may use).
     """
     t0 = time.perf_counter()
     refine = _parse_refine(refine)
@@ -325,32 +170,39 @@ def calibrate(model, reference, *, refine=REFINE_KINDS, T_ref_mov=None, result=N
     T, reg_ok, ref, reg_reasons = _registration(Path(model), reference, T_ref_mov,
                                                 reference_format)
     transform_model(rec, Transform.from_translation(-ref.origin) @ T)
-    rms0 = _per_camera_rms(rec)
-    res0, _ = _reprojection(rec)
-    sigma_px = max(nmad(res0.ravel()), 0.05)
-    ids, xyz0 = _points(rec)
+    obs = observations(rec)
+    t_lidar = time.perf_counter()
+    xyz0 = poses_points(rec, obs)[2]
     lidar = LidarPatches.read(ref, xyz0)
+    t_lidar = time.perf_counter() - t_lidar
     p0 = lidar.at(xyz0)
-    check = _check_split(xyz0) & p0.ok
+    check = check_split(xyz0) & p0.ok
+    spread0 = spread(p0, check, lidar.floor_m)
+    control = select_control(p0, check, spread0)
+    res0, _ = reprojection(rec, obs)
     base = dict(T_ref_mov=T, registration_confident=reg_ok, reprojection_rms_before_px=_rms(res0),
-                pixel_sigma_px=sigma_px, check_before=_stats(p0, check),
+                pixel_sigma_px=pixel_sigma(rec, obs), check_before=_stats(p0, check),
                 n_check=int(check.sum()), refined=refine,
                 inputs={"model": str(model), "reference": str(reference)})
-    control = _control(p0, check)
     reasons = [f"registration: {r}" for r in reg_reasons] if not reg_ok else []
     if control.sum() < MIN_CONTROL:
-        reasons.append(f"only {int(control.sum())} tie points lie on planar, smooth lidar "
-                       f"patches (at least {MIN_CONTROL} needed): nothing to calibrate against")
+        reasons.append(f"only {int(control.sum())} tie points lie on smooth lidar patches (at "
+                       f"least {MIN_CONTROL} needed): nothing to calibrate against")
+    rms0 = _per_camera_rms(rec, obs)
     if reasons:
-        return _not_run(rec, start, base, reasons, rms0, t0)
-    return _rounds(rec, start, ref, lidar, ids, check, control, p0, base, refine, sigma_px,
-                   tolerance, max_rounds, rms0, t0)
+        return _not_run(rec, obs, start, base, reasons, rms0, t0)
+    st = Rounds(rec, obs, lidar, check, control, p0, spread0, base["pixel_sigma_px"], start,
+                {cid: refine_indices(c.model.name, refine) for cid, c in rec.cameras.items()},
+                {int(i): np.array(rec.images[int(i)].projection_center())
+                 for i in obs.image_ids}, "poses" in refine, num_threads)
+    outcome = run_rounds(st, tolerance=tolerance, max_rounds=max_rounds)
+    return _finish(st, outcome, ref, p0, control, base, rms0, t0, t_lidar, max_rounds)
 
 
-def _not_run(rec, start, base: dict, reasons: list[str], rms0: dict, t0: float):
+def _not_run(rec, obs, start, base: dict, reasons: list[str], rms0: dict, t0: float):
     """The result of a calibration that could not run: the input intrinsics, not confident."""
     cams = _camera_results(rec, start, np.zeros((0, 0)), [], {}, rms0, rms0,
-                           _images_per_camera(rec))
+                           _images_per_camera(obs))
     return CalibrationResult(
         confident=False, reasons=tuple(reasons), cameras=cams,
         reprojection_rms_after_px=base["reprojection_rms_before_px"], check_after=None,
@@ -358,104 +210,61 @@ def _not_run(rec, start, base: dict, reasons: list[str], rms0: dict, t0: float):
         seconds=time.perf_counter() - t0, model=None, **base)
 
 
-def _images_per_camera(rec) -> dict[int, int]:
-    out: dict[int, int] = {}
-    for iid in rec.reg_image_ids():
-        cid = int(rec.images[iid].camera_id)
-        out[cid] = out.get(cid, 0) + 1
-    return out
+def _images_per_camera(obs) -> dict[int, int]:
+    ids, counts = np.unique(obs.camera_of_image, return_counts=True)
+    return {int(i): int(n) for i, n in zip(ids, counts)}
 
 
-@dataclass
-class _State:
-    """What changes from round to round of the adjustment."""
-
-    control: np.ndarray
-    patches: Patches
-    spread_m: float
-    sigma_px: float
-    rounds: int = 0
-    iterations: int = 0
-    termination: str = ""
-    params: np.ndarray | None = None  # the intrinsics after the previous round
-    start: dict = None  # the input intrinsics per camera
+def _check_grew(before: HeightStats | None, after: HeightStats | None) -> str | None:
+    """Why the check points say the calibration made the heights worse, or ``None``: their
+    RMSE and NMAD both grew by more than two standard errors of the RMSE."""
+    if before is None or after is None or before.n_used < 2:
+        return None
+    limit = 1.0 + 2.0 / math.sqrt(2.0 * before.n_used)
+    if after.rmse_z > limit * before.rmse_z and after.nmad_dz > limit * before.nmad_dz:
+        return (f"the height residuals at the check points grew (RMSE {before.rmse_z:.3f} -> "
+                f"{after.rmse_z:.3f}): the lidar and the images disagree")
+    return None
 
 
-def _settle(rec, lidar: LidarPatches, ids, check, st: _State, refine_idx, priors, refine_poses,
-            max_rounds: int) -> tuple[bool, Adjustment]:
-    """Rounds of adjustment and control point selection until the control set and the lidar
-    residuals' spread settle: whether they did, and the last adjustment."""
-    for _ in range(max_rounds):
-        st.rounds += 1
-        planes = _planes(st.patches, st.control, ids, st.spread_m)
-        adj = Adjustment(rec, st.sigma_px, dict(refine_idx), planes, priors, refine_poses,
-                         focal_start={cid: float(v[0]) for cid, v in st.start.items()})
-        summary = adj.solve()
-        st.iterations += len(summary.ceres_summary.iterations) if hasattr(
-            summary.ceres_summary, "iterations") else 0
-        st.termination = str(summary.termination_type).rsplit(".", 1)[-1]
-        st.patches = lidar.at(_points(rec)[1])
-        new = _control(st.patches, check, st.control)
-        spread = _spread(st.patches, check)
-        changed = int((new != st.control).sum())
-        params = np.concatenate([np.asarray(c.params) for _, c in sorted(rec.cameras.items())])
-        moved = np.max(np.abs(params - st.params) / np.maximum(np.abs(params), 1e-3)) \
-            if st.params is not None else np.inf
-        st.params = params
-        # settled: the control set hardly changes, or the intrinsics no longer move
-        settled = abs(spread - st.spread_m) <= 0.25 * st.spread_m and (
-            changed <= 0.02 * new.sum() or moved < SETTLED_CHANGE)
-        log.info("round %d: %d control points (%d changed), lidar spread %.3f, %s", st.rounds,
-                 int(new.sum()), changed, spread, st.termination)
-        st.control, st.spread_m = new, spread
-        st.sigma_px = max(nmad(_reprojection(rec)[0].ravel()), 0.05)
-        if settled:
-            return True, adj
-    return False, adj
+def _check_inliers(after: Patches, check: np.ndarray, floor_m: float) -> np.ndarray:
+    """The check points whose height residual after calibration lies within
+    ``CHECK_OUTLIER_NMADS`` robust standard deviations of the median: the others are features
+    the lidar does not have (vehicles, blunders), which no calibration can bring onto it."""
+    dz = after.dz_m
+    ok = check & np.isfinite(dz)
+    if ok.sum() < 5:
+        return ok
+    scale = max(nmad(dz[ok]), floor_m)
+    return ok & (np.abs(dz - np.median(dz[ok])) <= CHECK_OUTLIER_NMADS * scale)
 
 
-def _rounds(rec, start, ref, lidar: LidarPatches, ids, check, control, p0: Patches, base: dict,
-            refine, sigma_px: float, tol: Tolerance, max_rounds: int, rms0: dict, t0: float):
-    """Settle the adjustment; hold what it does not determine and settle again."""
-    refine_idx = {cid: refine_indices(c.model.name, refine) for cid, c in rec.cameras.items()}
-    priors = {iid: np.array(rec.images[iid].projection_center()) for iid in rec.reg_image_ids()}
-    held: dict[tuple[int, int], str] = {}
-    st = _State(control, p0, _spread(p0, check), sigma_px, start=start)
-    for _ in range(3):
-        converged, adj = _settle(rec, lidar, ids, check, st, refine_idx, priors,
-                                 "poses" in refine, max_rounds)
-        cov, labels = reduced_covariance(adj)
-        new = {**_to_hold(cov, labels, rec, tol), **_at_bound(rec, start, refine_idx)}
-        if not new:
-            break
-        _hold(rec, start, refine_idx, new, held)
-    weak = _to_hold(cov, labels, rec, tol, flag=True)
-    return _finish(rec, start, ref, check, p0, control, st, converged, cov, labels, held, weak,
-                   base, rms0, max_rounds, t0)
-
-
-def _finish(rec, start, ref, check, p0: Patches, control0, st: _State, converged: bool, cov,
-            labels, held, weak, base: dict, rms0: dict, max_rounds: int, t0: float):
-    res1, _ = _reprojection(rec)
-    check_after = _stats(st.patches, check)
-    reasons = []
-    if not converged:
-        reasons.append(f"the control points did not settle in {max_rounds} rounds")
-    cb, ca = base["check_before"], check_after
-    if cb is not None and ca is not None and ca.rmse_z > 1.05 * cb.rmse_z:
-        reasons.append(f"the height residuals at the check points grew ({cb.rmse_z:.3f} -> "
-                       f"{ca.rmse_z:.3f}): the lidar and the images disagree")
+def _finish(st: Rounds, outcome: Outcome, ref, p0: Patches, control0, base: dict, rms0: dict,
+            t0: float, t_lidar: float, max_rounds: int) -> CalibrationResult:
+    rec = st.rec
+    res1, _ = reprojection(rec, st.obs)
+    inliers = _check_inliers(st.patches, st.check, st.lidar.floor_m)
+    base = {**base, "check_before": _stats(p0, inliers), "n_check": int(inliers.sum()),
+            "n_check_outliers": int((st.check & ~inliers).sum())}
+    check_after = _stats(st.patches, inliers)
+    reasons = [] if outcome.converged else [
+        f"the control points did not settle in {max_rounds} rounds"]
+    grew = _check_grew(base["check_before"], check_after)
+    if grew:
+        reasons.append(grew)
+    rms1 = _per_camera_rms(rec, st.obs)
     transform_model(rec, Transform.from_translation(ref.origin))
-    cams = _camera_results(rec, start, cov, labels, held, rms0, _per_camera_rms(rec),
-                           _images_per_camera(rec))
+    cams = _camera_results(rec, st.start, outcome.cov, outcome.labels, st.held, rms0, rms1,
+                           _images_per_camera(st.obs))
     solver = {"name": "ceres (pycolmap cost functions, pyceres)", "rounds": st.rounds,
-              "termination": st.termination}
-    residuals = {"xyz": _points(rec)[1], "check": check, "control": st.control,
-                 "control_before": control0, "dz_before": p0.dz_m, "dz_after": st.patches.dz_m}
-    from .result import PARAM_NAMES as names
-
-    warnings = tuple(f"camera {c}: {names[rec.cameras[c].model.name][i]}: {r}"
-                     for (c, i), r in sorted(weak.items()))
+              "iterations": st.iterations, "termination": st.termination,
+              "solve_seconds": round(st.solve_seconds, 3),
+              "lidar_read_seconds": round(t_lidar, 3)}
+    residuals = {"xyz": poses_points(rec, st.obs)[2], "point_ids": st.obs.point_ids,
+                 "check": inliers, "control": st.control, "control_before": control0,
+                 "dz_before": p0.dz_m, "dz_after": st.patches.dz_m}
+    warnings = tuple(f"camera {c}: {PARAM_NAMES[rec.cameras[c].model.name][i]}: {r}"
+                     for (c, i), r in sorted(outcome.weak.items()))
     return CalibrationResult(
         confident=not reasons, reasons=tuple(reasons), cameras=cams, warnings=warnings,
         reprojection_rms_after_px=_rms(res1), check_after=check_after,
