@@ -89,6 +89,15 @@ def test_flat_nadir_block_holds_the_focal_length(tmp_path):
     assert "flying height" in dict(cam.held)["f"]
     assert cam.value("f") == cam.value("f", after=False)  # held at its input value
     assert cam.to_dict()["intrinsics"]["f"]["held"] is True
+    # nothing silently wrong: every refined intrinsic within 3 sigma of the truth, or flagged
+    flagged = {w.split(": ")[1] for w in r.warnings}
+    for name, true in zip(cam.names, CAMERA.params):
+        if cam.is_held(name) or name in flagged:
+            continue
+        sigma = cam.sigma[cam.names.index(name)]
+        assert abs(cam.value(name) - true) <= 3 * sigma, (name, cam.value(name), true, sigma)
+    # the first version held k1 at 0 and refined k2 to -0.066 (true 0.005) with a small sigma
+    assert "k2" in flagged or cam.is_held("k2") or abs(cam.value("k2") - CAMERA.k2) < 0.005
 
 
 def test_cli_bad_input_one_line(tmp_path):
@@ -127,3 +136,65 @@ def test_cli_outputs_readable(hilly, tmp_path):
     centre = np.mean([rec.images[i].projection_center() for i in rec.reg_image_ids()], axis=0)
     assert np.hypot(*(centre[:2] - hilly.lidar.xyz[:, :2].mean(axis=0))) < 600  # lidar frame
     assert "data:image/png;base64" in (out / "report" / "report.html").read_text()
+
+
+def test_plane_cost_is_the_normal_distance():
+    """The native lidar cost: weight x normal distance; along the plane next to nothing."""
+    import pyceres
+
+    from tiereg.calibrate.adjust import plane_cost
+
+    normal = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
+    on_plane = np.array([10.0, -4.0, 2.0])
+    for x in ([10.5, -3.0, 2.7], [11.0, -4.0, 2.0] + 5 * np.cross(normal, [1.0, 0, 0])):
+        xyz = np.array(x, dtype=np.float64)
+        problem = pyceres.Problem()
+        problem.add_residual_block(plane_cost(normal, on_plane, 4.0), None, [xyz])
+        r = np.asarray(problem.evaluate_residuals())
+        expected = 4.0 * normal @ (xyz - on_plane)
+        assert np.linalg.norm(r) == pytest.approx(abs(expected), abs=1e-3 + 1e-6 * abs(expected))
+
+
+def test_quadric_follows_curved_ground_a_plane_does_not():
+    """On a crest (z = 5 - 0.05 r^2) the quadratic surface gives the height at the point; a
+    plane through the same patch passes 5 cm below it."""
+    from tiereg.calibrate.lidar import fit_quadrics
+    from tiereg.surface import fit_planes, plane_heights
+
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-2, 2, (1, 12, 2))
+    z = 5.0 + 0.2 * xy[..., 0] - 0.05 * (xy[..., 0] ** 2 + xy[..., 1] ** 2)
+    patch = np.concatenate([xy, z[..., None]], axis=-1)
+    at = np.zeros((1, 2))
+    height, slope, rough = fit_quadrics(patch, at)
+    assert height[0] == pytest.approx(5.0, abs=1e-5)
+    assert slope[0] == pytest.approx([0.2, 0.0], abs=1e-5)
+    assert rough[0] < 1e-5
+    c, n, _ = fit_planes(patch)
+    assert plane_heights(c, n, np.zeros((1, 3)))[0] < 5.0 - 0.03
+
+
+def _camera_rec():
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(
+        model="RADIAL", width=2000, height=1500, params=[2000.0, 1000.0, 750.0, -0.03, 0.005],
+        camera_id=1))
+    return rec
+
+
+def test_degenerate_focal_is_held_first_then_distortion_kept():
+    """f undetermined and correlated with k1: holding f (the worst) leaves k1 determined, so
+    only f is held; k2 is held with a held k1."""
+    from tiereg.calibrate.degenerate import to_hold
+
+    rec = _camera_rec()
+    labels = [(1, 0), (1, 3), (1, 4)]  # f, k1, k2
+    sf, sk1, sk2 = 200.0, 0.01, 0.0005  # f: 10 %; k1 alone undetermined through f
+    r = 0.9999
+    cov = np.array([[sf**2, r * sf * sk1, 0.0], [r * sf * sk1, sk1**2, 0.0],
+                    [0.0, 0.0, sk2**2]])
+    held = to_hold(cov, labels, rec)
+    assert set(held) == {(1, 0)}
+    assert "flying height" in held[(1, 0)]
+    cov_k1 = np.diag([1e-8, 0.05**2, sk2**2])  # k1 itself undetermined: k2 goes with it
+    assert set(to_hold(cov_k1, labels, rec)) == {(1, 3), (1, 4)}

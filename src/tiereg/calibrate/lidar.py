@@ -1,22 +1,24 @@
 """Lidar planes under the tie points: which points the lidar can control, and how well.
 
 The lidar near the tie points is read once (:func:`~tiereg.fine.lsm.lidar_near`); at any
-positions of the tie points, :meth:`LidarPatches.at` fits a plane to each point's nearest lidar
-points. Every tie point whose patch is not steep (:data:`MAX_CONTROL_SLOPE_DEG`) and not rough
+positions of the tie points, :meth:`LidarPatches.at` fits a quadratic surface to each point's
+nearest lidar points (:func:`fit_quadrics`) and constrains the point to its tangent plane there.
+Every tie point whose patch is not steep (:data:`MAX_CONTROL_SLOPE_DEG`) and not rough
 (:data:`MAX_SIGMA_NOISE` times the lidar's noise floor) may be a control point, with the patch's
-roughness (the standard deviation of its lidar points off the plane, at least the noise floor)
-as the standard deviation of its constraint: a planar patch holds its tie point to the lidar's
+roughness (the standard deviation of its lidar points off the surface, at least the noise floor)
+as the standard deviation of its constraint: a smooth patch holds its tie point to the lidar's
 noise, a patch across a roof edge or in a crown hardly at all. Tie points sit at image corners,
 where the lidar is seldom a clean plane, so this keeps most of them where the strict rules of
-the lidar control points (:mod:`tiereg.control`, after Gneeniss et al. 2015; ``ok``) keep a few
-per cent; those strict patches give the held-out check points. Level patches give the height
+the lidar control points (:mod:`tiereg.control`, after Gneeniss et al. 2015) keep a few per
+cent. Smooth patches with the point near their middle (``ok``: those rules, the quadratic
+surface taking the place of their curvature test and the control points' slope limit of theirs)
+give the held-out check points. Level patches give the height
 only (a vertical normal); sloped ones the normal distance, which also constrains the position
 across the slope.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,19 +26,15 @@ from scipy.spatial import cKDTree
 
 from ..control import (
     LEVEL_SLOPE_DEG,
-    MAX_CURVATURE_NOISE,
     MAX_OFFSET,
     MAX_ROUGHNESS_NOISE,
-    MAX_SLOPE_DEG,
     PATCH_POINTS,
 )
 from ..fine.lsm import lidar_near
 from ..reference import Reference
-from ..surface import fit_planes, plane_heights
 
 MARGIN_M = 5.0  # the tie points may move this far during calibration (reference units)
 MAX_CONTROL_SLOPE_DEG = 30.0  # steeper patches control no tie point
-SURFACE = "quadric"
 MAX_SIGMA_NOISE = 6.0  # nor do patches rougher than this many times the lidar's noise floor
 
 
@@ -53,6 +51,21 @@ class Patches:
     distance_m: np.ndarray = field(repr=False)  # (N,) normal distance of the point (signed)
     dz_m: np.ndarray = field(repr=False)  # (N,) height above the plane at the point
     level: np.ndarray = field(repr=False)  # (N,) bool
+
+
+def lidar_reference(reference, *, reference_format: str | None = None) -> Reference:
+    """The lidar ``reference`` (paths as :func:`tiereg.register` takes them, a point array or
+    :class:`~tiereg.points.PointSet`) prepared as the registration prepares it."""
+    from ..io import open_points
+    from ..io.base import ArraySource
+    from ..points import PointSet
+    from ..reference import point_spacing, prepare_reference
+
+    if isinstance(reference, np.ndarray):
+        reference = PointSet(np.asarray(reference, dtype=np.float64), source="<reference array>")
+    src = ArraySource(reference) if isinstance(reference, PointSet) else open_points(
+        reference, format=reference_format)
+    return prepare_reference(src, base_cell=max(4.0 * point_spacing(src), 1e-3))
 
 
 def fit_quadrics(patches: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray,
@@ -94,14 +107,14 @@ class LidarPatches:
         radius = 3.0 * reference.spacing
         pts = lidar_near(reference, xyz_local[:, :2], radius + MARGIN_M)
         tree = cKDTree(pts[:, :2]) if len(pts) >= PATCH_POINTS else None
-        first = cls(pts, radius, tree)
-        fit = first._fit(xyz_local)[1]
-        floor = float(np.percentile(fit[3], 10)) if fit is not None else 0.0
+        fit = cls(pts, radius, tree)._fit(xyz_local)[1]
+        floor = float(np.percentile(fit[2], 10)) if fit is not None else 0.0
         return cls(pts, radius, tree, max(floor, 1e-6))
 
     def _fit(self, xyz: np.ndarray):
-        """Rows of ``xyz`` with a full patch, and ``(neighbours, centroids, normals,
-        roughness, reach)`` there (``None`` when there is none)."""
+        """Rows of ``xyz`` with a full patch, and there ``(height, gradient, roughness, offset,
+        reach)`` of the patch's quadratic surface (:func:`fit_quadrics`; ``offset``: from the
+        patch's centroid to the point in plan; ``None`` when there is no patch)."""
         if self._tree is None:
             return np.zeros(0, np.int64), None
         dist, idx = self._tree.query(xyz[:, :2], k=PATCH_POINTS, distance_upper_bound=self.radius)
@@ -109,50 +122,41 @@ class LidarPatches:
         if len(rows) == 0:
             return rows, None
         nb = self.points[idx[rows]]
-        c, normal, rough = fit_planes(nb)
-        roughness = rough * math.sqrt(PATCH_POINTS / (PATCH_POINTS - 3))
-        return rows, (nb, c, normal, roughness, dist[rows, -1])
+        height, gradient, roughness = fit_quadrics(nb, xyz[rows, :2])
+        offset = np.hypot(*(xyz[rows, :2] - nb[:, :, :2].mean(axis=1)).T)
+        return rows, (height, gradient, roughness, offset, dist[rows, -1])
 
     def at(self, xyz: np.ndarray) -> Patches:
         """The patches at positions ``xyz`` (local frame); see the module docstring."""
         n = len(xyz)
         nan3 = np.full((n, 3), np.nan)
-        out = dict(ok=np.zeros(n, bool), usable=np.zeros(n, bool), centroid=nan3,
-                   normal=nan3.copy(), sigma_m=np.full(n, np.nan), distance_m=np.full(n, np.nan),
-                   dz_m=np.full(n, np.nan), level=np.zeros(n, bool))
+        out = {"ok": np.zeros(n, bool), "usable": np.zeros(n, bool), "centroid": nan3,
+               "normal": nan3.copy(), "sigma_m": np.full(n, np.nan),
+               "distance_m": np.full(n, np.nan), "dz_m": np.full(n, np.nan),
+               "level": np.zeros(n, bool)}
         rows, fit = self._fit(xyz)
         if fit is None:
             return Patches(**out)
-        nb, c, normal, roughness, reach = fit
-        slope = np.degrees(np.arccos(np.clip(normal[:, 2], -1.0, 1.0)))
+        height, gradient, roughness, offset, reach = fit
         q = xyz[rows]
-        offset = np.hypot(*(q[:, :2] - c[:, :2]).T)
-        z_plane = plane_heights(c, normal, q)
-        c6, n6, _ = fit_planes(nb[:, : PATCH_POINTS // 2])
-        z_half = plane_heights(c6, n6, q)
+        # the constraint: the tangent plane of the patch's quadratic surface at the point
+        normal = np.column_stack([-gradient, np.ones(len(q))])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        slope = np.degrees(np.arccos(np.clip(normal[:, 2], -1.0, 1.0)))
         floor = self.floor_m
-        ok = ((slope <= MAX_SLOPE_DEG) & (roughness <= MAX_ROUGHNESS_NOISE * floor)
-              & (offset <= MAX_OFFSET * reach)
-              & (np.abs(z_half - z_plane) <= MAX_CURVATURE_NOISE * floor))
-        level = slope <= LEVEL_SLOPE_DEG
-        if SURFACE == "quadric":
-            # the constraint: the tangent plane of the patch's quadratic surface at the point
-            z_q, grad, rough_q = fit_quadrics(nb, q[:, :2])
-            c = np.column_stack([q[:, :2], z_q])
-            normal = np.column_stack([-grad, np.ones(len(q))])
-            normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-            z_plane, roughness = z_q, np.minimum(roughness, rough_q)
-            slope = np.degrees(np.arccos(np.clip(normal[:, 2], -1.0, 1.0)))
-            level = slope <= LEVEL_SLOPE_DEG
         sigma = np.maximum(roughness, floor)
+        out["ok"][rows] = ((slope <= MAX_CONTROL_SLOPE_DEG)
+                           & (roughness <= MAX_ROUGHNESS_NOISE * floor)
+                           & (offset <= MAX_OFFSET * reach))
         out["usable"][rows] = (slope <= MAX_CONTROL_SLOPE_DEG) & (sigma <= MAX_SIGMA_NOISE * floor)
+        level = slope <= LEVEL_SLOPE_DEG
         # level patches: the height above the plane (the normal scaled to a unit vertical part)
         normal = np.where(level[:, None], normal / normal[:, 2:3], normal)
-        out["ok"][rows] = ok
+        c = np.column_stack([q[:, :2], height])
         out["centroid"][rows] = c
         out["normal"][rows] = normal
         out["sigma_m"][rows] = sigma
         out["distance_m"][rows] = np.einsum("ij,ij->i", q - c, normal)
-        out["dz_m"][rows] = q[:, 2] - z_plane
+        out["dz_m"][rows] = q[:, 2] - height
         out["level"][rows] = level
         return Patches(**out)

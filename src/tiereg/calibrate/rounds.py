@@ -83,8 +83,14 @@ def plane_constraints(patches: Patches, control: np.ndarray, ids: np.ndarray,
 
 
 def pixel_sigma(rec, obs: Observations) -> float:
-    """The image measurements' noise: the NMAD of the reprojection residuals."""
-    return max(nmad(reprojection(rec, obs)[0].ravel()), MIN_PIXEL_SIGMA)
+    """The image measurements' noise: the NMAD of the reprojection residuals, scaled up for the
+    degrees of freedom the adjustment takes from them (3 per point, 6 per image: with 4 rays a
+    point the residuals are a fifth smaller than the noise, and so were the standard deviations
+    of the intrinsics computed from them)."""
+    n_res = 2 * len(obs.uv)
+    n_par = 3 * len(obs.point_ids) + 6 * len(obs.image_ids)
+    dof = np.sqrt(n_res / max(n_res - n_par, 0.1 * n_res))
+    return max(nmad(reprojection(rec, obs)[0].ravel()) * dof, MIN_PIXEL_SIGMA)
 
 
 @dataclass

@@ -29,7 +29,7 @@ from ..robust import nmad
 from ..transform import Transform
 from .adjust import refine_indices
 from .degenerate import TOLERANCE, Tolerance
-from .lidar import LidarPatches, Patches
+from .lidar import LidarPatches, Patches, lidar_reference
 from .model import observations, poses_points, read_model, reprojection, transform_model
 from .result import PARAM_NAMES, CalibrationResult, CameraCalibration
 from .rounds import (
@@ -52,23 +52,14 @@ CHECK_OUTLIER_NMADS = 5.0
 
 def _registration(model: Path, reference, T_ref_mov, reference_format):
     """``(T_ref_mov, confident, Reference, reasons)`` from a registration or as given."""
-    from ..io import open_points
-    from ..io.base import ArraySource
     from ..pipeline import register
-    from ..points import PointSet
-    from ..reference import point_spacing, prepare_reference
 
     if T_ref_mov is None:
         reg = register(str(model), reference, reference_format=reference_format)
         return reg.T_ref_mov, reg.confident, reg.reference, tuple(reg.reasons)
     if not isinstance(T_ref_mov, Transform):
         T_ref_mov = Transform(np.asarray(T_ref_mov, dtype=np.float64))
-    if isinstance(reference, np.ndarray):
-        reference = PointSet(np.asarray(reference, dtype=np.float64), source="<reference array>")
-    src = ArraySource(reference) if isinstance(reference, PointSet) else open_points(
-        reference, format=reference_format)
-    ref = prepare_reference(src, base_cell=max(4.0 * point_spacing(src), 1e-3))
-    return T_ref_mov, True, ref, ()
+    return T_ref_mov, True, lidar_reference(reference, reference_format=reference_format), ()
 
 
 def _rms(res: np.ndarray) -> float:
@@ -167,14 +158,17 @@ def calibrate(model, reference, *, refine=REFINE_KINDS, T_ref_mov=None, result=N
         T_ref_mov = load_transform(result)
     rec = read_model(model)
     start = {cid: np.array(c.params, dtype=np.float64) for cid, c in rec.cameras.items()}
+    t_reg = time.perf_counter()
     T, reg_ok, ref, reg_reasons = _registration(Path(model), reference, T_ref_mov,
                                                 reference_format)
+    t_reg = time.perf_counter() - t_reg
     transform_model(rec, Transform.from_translation(-ref.origin) @ T)
     obs = observations(rec)
     t_lidar = time.perf_counter()
     xyz0 = poses_points(rec, obs)[2]
     lidar = LidarPatches.read(ref, xyz0)
-    t_lidar = time.perf_counter() - t_lidar
+    # reading the lidar: the reference prepared (or registered to) and the points near the ties
+    t_lidar = time.perf_counter() - t_lidar + t_reg
     p0 = lidar.at(xyz0)
     check = check_split(xyz0) & p0.ok
     spread0 = spread(p0, check, lidar.floor_m)

@@ -185,19 +185,23 @@ def block_model(block: CameraBlock, camera: CameraModel | None = None, *,
 
 
 def flawed_model(block: CameraBlock, *, focal_error: float = 0.02, ignore_distortion: bool = True,
+                 principal_px: tuple[float, float] | None = None,
                  T_model_ref: Transform | None = None, seed: int = 0):
     """What structure from motion makes of ``block`` with the focal length off by
-    ``focal_error`` (relative) and, with ``ignore_distortion``, no distortion: a bundle
-    adjustment of the poses and points with those intrinsics held fixed, moved into a model
-    frame by ``T_model_ref`` (default: a random similarity of scale 0.25-4 about the block).
+    ``focal_error`` (relative), with ``ignore_distortion`` no distortion, and the principal
+    point at ``principal_px`` (default: the true one; the image centre is what a program
+    assumes without a calibration): a bundle adjustment of the poses and points with those
+    intrinsics held fixed, moved into a model frame by ``T_model_ref`` (default: a random
+    similarity of scale 0.25-4 about the block).
 
     Returns ``(reconstruction, T_model_ref)``.
     """
     import pycolmap
 
     cam = block.camera
+    cx, cy = (cam.cx_px, cam.cy_px) if principal_px is None else principal_px
     wrong = CameraModel(cam.width_px, cam.height_px, cam.focal_px * (1 + focal_error),
-                        cam.cx_px, cam.cy_px, 0.0 if ignore_distortion else cam.k1,
+                        float(cx), float(cy), 0.0 if ignore_distortion else cam.k1,
                         0.0 if ignore_distortion else cam.k2)
     # adjusted near the origin: the reference's large coordinates would cost digits
     origin = np.round(block.centres.mean(axis=0))
