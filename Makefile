@@ -11,7 +11,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e '.[test,bench,distributed]'
+	$(BIN)/python -m pip install --quiet -e '.[test,bench,distributed,calibrate]'
 	rm -f $(VENV)/.installed-* && touch $@
 
 install: $(STAMP)
@@ -41,6 +41,7 @@ bench: install bench-peers
 	$(BIN)/python benchmarks/precision.py
 	$(BIN)/python benchmarks/control.py
 	$(BIN)/python benchmarks/orientation.py
+	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/no_overlap_power.py
 	$(BIN)/python benchmarks/no_overlap_power.py --overlap 0.6 0.7
 	$(BIN)/python benchmarks/verdict.py --jobs 2

@@ -7,7 +7,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
 from scenes import surface
 
 ORIGIN = (500_000.0, 5_000_000.0)

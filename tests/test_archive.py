@@ -10,8 +10,8 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-
 from archive_tiles import ORIGIN, write_tiles
+
 from tiereg import archive
 from tiereg.archive import TileIndex, surface_mask
 from tiereg.errors import InputError

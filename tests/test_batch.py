@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from archive_tiles import ORIGIN, write_tiles
 from scenes import surface
+
 from tiereg import Transform
 from tiereg.batch import run_batch
 from tiereg.cli import main

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-
 from archive_tiles import ORIGIN, write_tiles
+
 from tiereg.archive import TileIndex
 from tiereg.distributed import cluster, grid_archive, prepare_archive_reference
 from tiereg.errors import InputError

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 from ._version import __version__
+from .calibrate import CalibrationResult, calibrate
 from .errors import FormatError, InputError, OutputError, TieregError
 from .io import open_points, read_points, write_points
 from .pipeline import RegistrationResult, register
@@ -12,6 +13,7 @@ from .points import PointSet
 from .transform import Helmert7, Transform
 
 __all__ = [
+    "CalibrationResult",
     "FormatError",
     "Helmert7",
     "InputError",
@@ -21,6 +23,7 @@ __all__ = [
     "TieregError",
     "Transform",
     "__version__",
+    "calibrate",
     "open_points",
     "read_points",
     "register",

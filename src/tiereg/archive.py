@@ -27,7 +27,7 @@ import numpy as np
 from .crs import crs_label, same_crs
 from .errors import FormatError, InputError
 from .io.base import DEFAULT_CHUNK, SourceInfo, write_text_atomic
-from .io.las import LasSource, laz_backend, crs_wkt_of, open_header, read_errors, short_error
+from .io.las import LasSource, crs_wkt_of, laz_backend, open_header, read_errors, short_error
 from .reference import surface_mask
 
 log = logging.getLogger(__name__)

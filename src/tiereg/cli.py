@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
     def add(name: str, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_, epilog=EXAMPLES[name],
+        p = sub.add_parser(name, help=help_, description=help_, epilog=EXAMPLES.get(name),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         _add_common(p)
         return p
@@ -211,6 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("demo", "Register the shipped COLMAP model to the shipped lidar sample and compare "
                     "with the truth.")
     p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder")
+    from .calibrate.cli import EXAMPLES as CALIBRATE_EXAMPLES
+    from .calibrate.cli import add_arguments as calibrate_args
+
+    EXAMPLES.setdefault("calibrate", CALIBRATE_EXAMPLES)
+    calibrate_args(add("calibrate", "Calibrate the cameras of a COLMAP MODEL against a lidar "
+                                    "REFERENCE (self-calibrating bundle adjustment)."))
     return parser
 
 
@@ -506,9 +512,16 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibrate.cli import command
+
+    return command(args)
+
+
 COMMANDS = {"register": _cmd_register, "overlap": _cmd_overlap, "report": _cmd_report,
             "simulate": _cmd_simulate, "apply": _cmd_apply, "grid": _cmd_grid,
-            "batch": _cmd_batch, "info": _cmd_info, "demo": _cmd_demo}
+            "batch": _cmd_batch, "info": _cmd_info, "demo": _cmd_demo,
+            "calibrate": _cmd_calibrate}
 
 
 class _Terminated(BaseException):
