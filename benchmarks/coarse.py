@@ -1,6 +1,6 @@
 """Coarse-registration benchmark: tiereg's coarse methods and peers on simulated scenes.
 
-The protocol follows the method source's (the share of heading x scale parameter pairs a method
+The protocol follows the coarse-registration literature's (the share of heading x scale parameter pairs a method
 recovers) on more varied ground: five kinds of synthetic world and real surfaces, any heading,
 scales 0.25-4 (feet vs metres included), any shift, partial overlap down to 30 % of the block, and
 negative cases whose tie points come from a world the lidar never saw.
@@ -509,7 +509,7 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
         "- each case is `tiereg.overlap.check_overlap` (`tiereg overlap`): the coarse stage "
         "(`auto`), then the tie points' share on the lidar and the overlap's outline; `correct` "
         "as in `coarse.md`",
-        "- scenes at the method source's scale: " + ", ".join(
+        "- scenes at the scale of the original method's tests: " + ", ".join(
             f"{k} ({v['tie_points']} tie points, cell {v['cell']:g} m)"
             for k, v in meta["scenes"].items()),
         "- the cases of `coarse.md` (the same seeds), negative cases included",

@@ -58,7 +58,7 @@ from tiereg.transform import Transform  # noqa: E402
 WORK = HERE / "work" / "fine"
 RESULTS = HERE / "results"
 CASES_PER_KIND = 2
-# the method source's scale: about 2,400 tie points over a 2.6 km block, lidar at 1 point/m^2
+# the scale of the original method's tests: about 2,400 tie points over a 2.6 km block, lidar at 1 point/m^2
 SCENE = {"world_size_m": 4000.0, "lidar_size_m": 3200.0, "block": ImageBlock(side_m=2600.0),
          "survey": LidarSurvey(density_per_m2=1.0)}
 PERTURBATION = Transform.from_parameters(scale=1.0005, omega=np.radians(0.03),

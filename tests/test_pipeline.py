@@ -110,8 +110,11 @@ def test_result_json_follows_the_contract():
     precision = data["precision"]  # filled by the fine stage, one sigma per parameter
     assert {"scale", "omega_deg", "phi_deg", "kappa_deg", "translation"} <= set(precision)
     assert 0.0 < precision["translation"][2] < 0.1  # metres: 0.3 m height noise, 100 k lidar
-    assert data["stages"][1]["name"] == "fine" and data["stages"][1]["method"] == "lsm"
-    assert data["stages"][0]["name"] == "coarse" and data["stages"][0]["method"] == "auto"
+    assert [s["name"] for s in data["stages"]] == ["coarse", "verdict", "fine"]
+    assert data["stages"][0]["method"] == "auto" and data["stages"][2]["method"] == "lsm"
+    verdict = data["stages"][1]  # the refined fits that decided: the answer first, its rivals
+    assert verdict["confident"] is data["confident"] and verdict["chosen"] == "coarse answer"
+    assert verdict["poses"][0]["unexplained"] < 0.5 and len(verdict["poses"]) >= 2
     assert {"n_moving", "n_used", "rmse_z", "median_dz", "nmad_dz"} <= set(data["quality"])
     assert 0.0 <= data["confidence"] <= 1.0
     exports = data["exports"]  # paste-ready for PDAL and CloudCompare

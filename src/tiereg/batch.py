@@ -31,7 +31,7 @@ from .archive import TileIndex
 from .errors import InputError
 from .grid import Grid, GridSpec
 from .io import read_points
-from .io.base import atomic_output, write_text_atomic
+from .io.base import all_or_nothing, atomic_output, write_text_atomic
 from .progress import ProgressFactory, no_progress
 from .reference import Reference
 
@@ -217,12 +217,13 @@ def _one_block(name: str, block: str, ref: Reference, out: Path, *, client: Any,
                    "judged": [{"centre": list(map(float, c.centre)), "score": c.score,
                                "kappa_deg": c.kappa_deg, "sigma": c.sigma, "confident": k}
                               for c, k in zip(found.candidates, found.judged_confident)]}
-    if report:
-        from .report import write_report
-
-        write_report(result, folder / "report")
     result_json = folder / "RESULT.json"
-    write_text_atomic(result_json, dumps_json(d) + "\n")  # last: the block counts as done
+    with all_or_nothing(folders=[folder / "report"]):  # each block whole, as it finishes
+        if report:
+            from .report import write_report
+
+            write_report(result, folder / "report")
+        write_text_atomic(result_json, dumps_json(d) + "\n")  # the block counts as done
     return BlockOutcome.from_result_file(name, block, result_json, skipped=False)
 
 

@@ -585,6 +585,8 @@ def _run(args: argparse.Namespace) -> int:
             if fresh and Path(args.out).is_dir():
                 shutil.rmtree(args.out, ignore_errors=True)
             raise
+    if args.command == "batch":  # resumable: each block's outputs are written whole as it ends
+        return COMMANDS[args.command](args)
     with all_or_nothing(folders=_output_folders(args)):
         try:
             return COMMANDS[args.command](args)

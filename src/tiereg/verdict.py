@@ -19,7 +19,10 @@ robust 7-parameter fit of the tie points' heights to the reference surface
    hypothesis (McNemar 1947). The answer must stand out from every rival by :data:`MIN_Z`.
    On flat, featureless ground every pose explains the heights alike and ``z`` stays small: the
    verdict then says so instead of guessing.
-4. **Explained.** Its residual spread must be a small part of the spread of the surface heights
+4. **Settled.** The answer's refined fit stays near it (within the fine stage's
+   :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS`): a fit that runs away says the heights fit best
+   elsewhere.
+5. **Explained.** Its residual spread must be a small part of the spread of the surface heights
    under the tie points (:data:`MAX_UNEXPLAINED`): a pose that explains tie points only as well
    as any height would is no answer, however it compares with its rivals.
 
@@ -144,14 +147,25 @@ def refine(moving: np.ndarray, surface: SurfaceSampler, T_start: Transform, *,
            cell: float) -> RefinedPose:
     """The refined fit from ``T_start`` (``moving``: centred model coordinates; ``cell``: the
     registration's cell, reference units): kept where it converged within
-    :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS` cells, else the start stands."""
+    :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS` cells and leaves the heights closer to the
+    surface (a smaller robust spread), else the start stands."""
     placed = T_start.apply(moving)
     fit = solve_helmert(placed, vertical_observer(surface), hold_displacement=cell / 4)
     moved = float(np.sqrt(np.mean(np.sum((fit.T.apply(placed) - placed) ** 2, axis=1)))) / cell
     T = fit.T @ T_start if fit.converged and moved <= MAX_MOVE_CELLS else T_start
+    pose = _pose_at(T_start, T, moving, surface, fit.converged, moved)
+    if T is not T_start:  # a fit that leaves the heights farther from the surface is no fit
+        start = _pose_at(T_start, T_start, moving, surface, fit.converged, moved)
+        if start.spread < pose.spread:
+            return start
+    return pose
+
+
+def _pose_at(T_start: Transform, T: Transform, moving: np.ndarray, surface: SurfaceSampler,
+             converged: bool, moved: float) -> RefinedPose:
     q = T.apply(moving)
     z, ok = surface.sample(q[:, 0], q[:, 1])
-    return RefinedPose(T_start, T, bool(fit.converged), moved, np.where(ok, z - q[:, 2], np.nan),
+    return RefinedPose(T_start, T, bool(converged), moved, np.where(ok, z - q[:, 2], np.nan),
                        np.where(ok, z, np.nan))
 
 
@@ -224,6 +238,10 @@ def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, ...]
     elif z_min < MIN_Z:
         reasons.append(f"another heading, scale or position explains the tie points' heights "
                        f"almost as well (z {z_min:.1f} < {MIN_Z:g})")
+    if chosen.moved_cells > MAX_MOVE_CELLS:
+        reasons.append(f"the refined fit runs away from the found pose (it would move the block "
+                       f"{chosen.moved_cells:.1f} cells, more than {MAX_MOVE_CELLS:g}): the tie "
+                       "points' heights fit best elsewhere")
     if chosen.unexplained > MAX_UNEXPLAINED:
         reasons.append(f"the tie points' heights disagree with the reference surface at the "
                        f"found pose (residual spread {chosen.unexplained:.2f} of the "

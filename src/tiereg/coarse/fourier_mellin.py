@@ -10,7 +10,7 @@ rotation and scale become a shift, found by correlating the two maps.
 - ``afmt``: the analytical Fourier-Mellin transform (Ghorbel 1994; Derrode & Ghorbel 2001) of the
   magnitude, ``M(k, v) = int int f(r, phi) r^(sigma - iv) e^(-ik phi) dphi dr/r``. Its phase
   carries ``(v ln a + k theta)``, so its registration is the phase correlation of the log-polar
-  map weighted by ``e^(sigma rho)`` (algorithms note, section 3.3); ``sigma = 0.5``.
+  map weighted by ``e^(sigma rho)``; ``sigma = 0.5``.
 - ``qafmt``: AFMT on a quasi-log-polar grid, ``rho = asinh(r / r0)``: linear near the centre,
   logarithmic further out, which removes the oversampled centre pixels of the log-polar grid
   (reading (B) of the note; scale is a shift of ``ln a`` wherever ``r >> r0``). The

@@ -1,4 +1,4 @@
-"""Making elevation grids comparable for correlation (algorithms note, section 2).
+"""Making elevation grids comparable for correlation.
 
 Sparse tie-point grids are mostly empty; empty cells must never enter an FFT as data. Each grid is
 detrended on its valid cells, filled by normalized convolution, band-passed by a difference of
