@@ -210,10 +210,6 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
     if vertical.ambiguous and not best.confident:  # else the reference decided the vertical
         reasons.append("the vertical of the moving model is ambiguous (no dominant plane); give "
                        "a model with its cameras, or a starting pose (`initial`)")
-    info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
-            "sign_known": vertical.sign_known, "flatness": vertical.flatness,
-            "tried": len(results), "confident_answers": sum(r.confident for r in results),
-            "chosen": poses[results.index(best)].name}
     rivals = [r for r in results if r.confident and r is not best
               and not _same_answer(r, best, centre[None])]
     if rivals:  # the lidar decides between them, as between the coarse stage's rivals
@@ -222,6 +218,10 @@ def _register_levelled(vertical: Vertical, mov_src: PointSource, centre: np.ndar
     if rivals:
         reasons.append("two orientations of the vertical register confidently: the answer is "
                        "ambiguous")
+    info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
+            "sign_known": vertical.sign_known, "flatness": vertical.flatness,
+            "tried": len(results), "confident_answers": sum(r.confident for r in results),
+            "chosen": poses[results.index(best)].name}
     confident = best.confident and not rivals
     inputs = replace(best.inputs, moving_args=_path_args(moving))
     return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
