@@ -25,7 +25,10 @@ code and whether stderr holds a traceback are recorded.
 Correct: rotation about the vertical ("heading") within 2 deg and tilt within 2 deg (of
 ``R_est R_true^T``), scale within 2 %, the model's centroid within one coarse cell (RESULT.json
 ``cell_size``) horizontally, and, when the fine stage ran, the RMS over the model's points of
-``|T_est p - T_true p|`` within 1.5 GSD. Confidently wrong: ``confident`` and not correct.
+``|T_est p - T_true p|`` within 1.5 GSD, or within the truth fit's own RMS residual where that is
+larger (a COLMAP model is not rigid: where its points depart from the best similarity by 2-3 GSD,
+no similarity is closer to the truth than that, and the truth itself is uncertain by about as
+much). Confidently wrong: ``confident`` and not correct.
 Scenes with an even seed form the development half, odd seeds the held-out half (fixed in
 ``sfm_scenes.SCENES`` before any result).
 
@@ -209,6 +212,7 @@ def score(case: Case, run: Run, result_path: Path, model_xyz: np.ndarray) -> Row
         return Row(case, run, true_scale, confident, not confident, nan, nan, nan, nan, cell,
                    nan, nan, fine_ran, note)
     T_est = Transform(np.asarray(res["T_ref_mov"]))
+    rms_tol = max(RMS_TOL_GSD, _truth_fit_rms_gsd(case.truth))
     heading, tilt = _angles(T_est, T_true)
     ds = T_est.scale / T_true.scale - 1.0
     centre = model_xyz.mean(axis=0, keepdims=True)
@@ -217,9 +221,16 @@ def score(case: Case, run: Run, result_path: Path, model_xyz: np.ndarray) -> Row
     err = np.linalg.norm(T_est.apply(model_xyz) - T_true.apply(model_xyz), axis=1)
     rms, mx = float(np.sqrt(np.mean(err**2)) / case.gsd), float(err.max() / case.gsd)
     ok = (abs(heading) <= HEADING_TOL_DEG and tilt <= TILT_TOL_DEG and abs(ds) <= SCALE_TOL
-          and cells <= 1.0 and (not fine_ran or rms <= RMS_TOL_GSD))
+          and cells <= 1.0 and (not fine_ran or rms <= rms_tol))
     return Row(case, run, true_scale, confident, bool(ok), heading, tilt, ds, cells, cell, rms,
                mx, fine_ran, note)
+
+
+def _truth_fit_rms_gsd(truth: str) -> float:
+    """RMS residual of the truth's similarity fit over the model's points, in GSD (0 when not
+    recorded)."""
+    fit = json.loads(Path(truth).read_text()).get("fit_points") or {}
+    return float(fit.get("rms_gsd") or 0.0)
 
 
 def _thin_count(name: str, n: int) -> int:

@@ -175,6 +175,7 @@ def write_report(rows, attainable, built, out_dir: Path, *, seconds: float,
         "camera)",
         "- correct: heading and tilt within 2 deg, scale within 2 %, model centroid within one "
         "coarse cell (RESULT.json `cell_size`), and within 1.5 GSD RMS at the model's points "
+        "(or the truth fit's own RMS residual where larger: the model is not rigid) "
         "when the fine stage ran; confidently wrong: `confident` and not correct; a negative "
         "(another place's lidar) is correct when not confident",
         "- each case: the installed `tiereg register MOVING LIDAR -o RESULT.json` in a child "

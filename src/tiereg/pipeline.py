@@ -38,7 +38,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference, prepare_reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
-from .verdict import MAX_UNEXPLAINED, Verdict, decide, judge_refined
+from .verdict import HOPELESS_UNEXPLAINED, Verdict, decide, judge_refined
 
 MIN_MOVING_POINTS = 30
 # the quality heights: local planes of the lidar within this many spacings of a tie point; half a
@@ -444,7 +444,7 @@ def register(
     fine_note = "not asked for (`fine` none)"
     # the fine stage polishes a pose that explains the heights, confident or not (a right pose
     # metres off in height is confident only after it); it cannot make a wrong one right
-    hopeless = (verdict.best.unexplained > MAX_UNEXPLAINED if verdict is not None
+    hopeless = (verdict.best.unexplained > HOPELESS_UNEXPLAINED if verdict is not None
                 else coarse == "pomf" and not confident)
     if fine != "none" and hopeless:
         fine_note = "skipped: no pose found explains the tie points' heights"

@@ -24,7 +24,10 @@ robust 7-parameter fit of the tie points' heights to the reference surface
    elsewhere.
 5. **Explained.** Its residual spread must be a small part of the spread of the surface heights
    under the tie points (:data:`MAX_UNEXPLAINED`): a pose that explains tie points only as well
-   as any height would is no answer, however it compares with its rivals.
+   as any height would is no answer, however it compares with its rivals. Nor is one whose
+   typical tie point it does not explain itself: its residual spread (in proportion to its
+   relief) more than ``NOISE_MULTIPLE`` times the tightest refined fit's. Another pose then
+   fits part of the tie points far more tightly, and the evidence is divided.
 
 The constants, what they guard and the benchmark figures that set them are listed in
 ``docs/constants.md``.
@@ -51,7 +54,8 @@ from .transform import Transform
 RIVALS = 3  # genuinely different poses refined beside the answer
 NOISE_MULTIPLE = 3.0  # a tie point within this many noise spreads of the surface is explained
 MIN_Z = 4.0  # the answer explains more tie points than any rival, z standard errors apart
-MAX_UNEXPLAINED = 0.5  # residual spread over the spread of the surface under the tie points
+MAX_UNEXPLAINED = 0.35  # residual spread over the spread of the surface under the tie points
+HOPELESS_UNEXPLAINED = 0.5  # above it no pose explains the heights: the fine stage is skipped
 
 
 @dataclass(frozen=True, eq=False)
@@ -246,6 +250,10 @@ def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, ...]
         reasons.append(f"the tie points' heights disagree with the reference surface at the "
                        f"found pose (residual spread {chosen.unexplained:.2f} of the "
                        f"surface's own, more than {MAX_UNEXPLAINED:g})")
+    elif chosen.unexplained > NOISE_MULTIPLE * noise:
+        reasons.append(f"another pose fits part of the tie points far more tightly (residual "
+                       f"spread {chosen.unexplained / noise:.1f} times the tightest refined "
+                       f"fit's, more than {NOISE_MULTIPLE:g}): the evidence is divided")
     distinct = min(z_min / (2 * MIN_Z), 1.0) if rivals else 0.0
     fit = 1.0 - chosen.unexplained / (2 * MAX_UNEXPLAINED)
     confidence = float(np.clip(min(distinct, fit), 0.0, 1.0))
