@@ -115,3 +115,25 @@ def test_a_block_too_small_for_the_reference_is_not_claimed(suburb_world):
         scales.lowest, rel=0.05)
     result = register(moving, ref, fine="none", level="none")
     assert not result.confident
+
+
+def test_an_answer_at_the_smallest_scale_searched_is_searched_again_with_a_coarser_tie_cell():
+    """The smallest scale searched is the reference's width over MAX_REFERENCE_CELLS tie cells:
+    an answer within a sweep step of it may be cut off there, so the block is searched again
+    with its tie cell doubled (the smallest scale halves) while it spans MIN_TIE_SIDE cells."""
+    from tiereg.pipeline import MIN_TIE_SIDE, _coarser_tie_cell
+
+    rng = np.random.default_rng(0)
+    lidar = np.column_stack([rng.uniform(0, 2000.0, (5000, 2)), rng.normal(0, 1, 5000)])
+    ref = prepare_reference(ArraySource(PointSet(lidar)))
+    moving = np.column_stack([rng.uniform(0, 640.0, (4000, 2)), np.zeros(4000)])  # model units
+    cell = 5.0  # 128 cells across the block
+    lowest = ScaleRange.of(moving, ref, cell).lowest
+    x0, y0, x1, y1 = ref.base.spec.bounds  # 2 km and the base grid's snapping
+    assert lowest == pytest.approx(max(x1 - x0, y1 - y0) / (MAX_REFERENCE_CELLS * cell))
+    assert _coarser_tie_cell(lowest * 1.05, moving, ref, cell) == 2 * cell  # at the edge
+    assert _coarser_tie_cell(lowest * SCALE_STEP * 1.01, moving, ref, cell) is None  # inside
+    # a block already only 2 * MIN_TIE_SIDE - 1 cells across is not gridded coarser
+    narrow = 640.0 / (2 * MIN_TIE_SIDE - 1)
+    edge = ScaleRange.of(moving, ref, narrow).lowest
+    assert _coarser_tie_cell(edge * 1.05, moving, ref, narrow) is None

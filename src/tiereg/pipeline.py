@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -18,7 +19,7 @@ from ._json import dumps_json
 from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
-from .coarse.scoring import tie_cell_for
+from .coarse.scoring import SCALE_STEP, ScaleRange, tie_cell_for
 from .coarse.similarity import register_similarity
 from .crs import crs_label, crs_units
 from .errors import InputError
@@ -145,6 +146,9 @@ class RegistrationResult:
 
     def to_json(self) -> str:
         return dumps_json(self.to_dict())
+
+
+log = logging.getLogger(__name__)
 
 
 def _as_source(points: PointsLike | PointSource, fmt: str | None, role: str) -> PointSource:
@@ -286,6 +290,22 @@ def _translation_grid(ref: Reference, cell_size: float, moving: np.ndarray):
     return ref.grid(cell_size)
 
 
+MIN_TIE_SIDE = 32  # a coarser tie cell is tried only while the block spans this many cells
+
+
+def _coarser_tie_cell(scale: float, moving: np.ndarray, ref: Reference,
+                      tie_cell: float) -> float | None:
+    """Twice ``tie_cell`` when an answer at ``scale`` (reference units per model unit) lies
+    within a sweep step of the smallest scale the search could reach with ``tie_cell`` and the
+    block still spans :data:`MIN_TIE_SIDE` doubled cells (a dense model gridded as if
+    thinned), else None."""
+    lowest = ScaleRange.of(moving, ref, tie_cell).lowest
+    extent = float(np.max(moving[:, :2].max(axis=0) - moving[:, :2].min(axis=0)))
+    if scale >= lowest * SCALE_STEP or extent / (2 * tie_cell) < MIN_TIE_SIDE:
+        return None
+    return 2 * tie_cell
+
+
 def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
     return HeightStats.from_dz(height_differences(xyz_ref, sampler), len(xyz_ref))
 
@@ -357,6 +377,7 @@ def register(
     mov_src = _as_source(moving, moving_format, "moving")
     mov = mov_src.read()
     validate_points(mov, min_count=MIN_MOVING_POINTS, role="moving")
+    log.info("read %d moving points (%.1f s)", len(mov.xyz), time.perf_counter() - t0)
     # a few points far outside the block would set the levelling, the cell size, the tie grid's
     # extent and how far the fine stage moves the block: they are left out of all estimation,
     # and still transformed and reported like every point
@@ -391,6 +412,8 @@ def register(
         t_ref = time.perf_counter()
         ref = prepare_reference(ref_src, progress=progress)  # its base cell from its own data
         reference_seconds = time.perf_counter() - t_ref
+        log.info("reference prepared: %d points, base cell %.3g (%.1f s)", ref_src.info.count,
+                 ref.base_cell, reference_seconds)
         ref = replace(ref, source_args=_path_args(reference))
     ref_src, o_ref = ref.source, ref.origin
     T_in = Transform.from_translation(o_ref).inverse  # reference -> local
@@ -413,7 +436,20 @@ def register(
         else:  # search, auto
             coarse_result = register_similarity(mov_local[keep], ref, tie_cell=tie_cell,
                                                 method=coarse, free_tilt=free_tilt)
+            while (coarser := _coarser_tie_cell(coarse_result.T_ref_mov.scale, mov_local[keep],
+                                                ref, tie_cell)) is not None:
+                # found at the smallest scale the tie cell lets the reference be searched at:
+                # the block may be smaller still; a coarser tie cell searches further down
+                log.info("answer at the smallest scale searched: tie cell %.4g -> %.4g",
+                         tie_cell, coarser)
+                tie_cell = coarser
+                coarse_result = register_similarity(mov_local[keep], ref, tie_cell=tie_cell,
+                                                    method=coarse, free_tilt=free_tilt)
         T_local = coarse_result.T_ref_mov
+        log.info("coarse (%s): scale %.6g, heading %.2f deg, %s (%.1f s)", coarse,
+                 T_local.scale, math.degrees(T_local.parameters().kappa) % 360.0,
+                 "confident" if coarse_result.confident else "not confident",
+                 coarse_result.seconds)
         # the registration's cell, in reference units: the tie cell at the scale found
         cell_size = cell_size or coarse_result.cell_size
         before = _height_stats((T_in @ T_mov_local).apply(mov_local), ref.surface())
@@ -427,6 +463,8 @@ def register(
             confident = verdict.confident and not coarse_result.limits
             confidence = verdict.confidence if confident else min(verdict.confidence, 0.49)
             reasons.extend(verdict.reasons + coarse_result.limits)
+            log.info("verdict: %s, %s (%.1f s so far)", verdict.to_dict()["chosen"],
+                     "confident" if confident else "not confident", time.perf_counter() - t0)
         coarse_result = replace(coarse_result,
                                 T_ref_mov=_to_world(coarse_result.T_ref_mov, o_ref, o_mov)
                                 @ T_start)
@@ -451,6 +489,9 @@ def register(
     elif fine != "none":
         fine_result = register_fine(T_local.apply(mov_local[keep]), ref, cell_size=cell_size,
                                     method="lsm" if fine == "auto" else fine)
+        log.info("fine (%s): %s (%.1f s)", fine_result.method,
+                 f"refused: {fine_result.refused}" if fine_result.refused else "accepted",
+                 fine_result.seconds)
         vouched = verdict is not None and not fine_result.contradicts_coarse
         if fine_result.refused and vouched:
             # the verdict's refined fit already placed the tie points on the surface; a fine
