@@ -293,6 +293,8 @@ def main() -> None:
     parser.add_argument("--half", choices=("dev", "heldout", "both"), default="both")
     parser.add_argument("--jobs", type=int, default=1, help="cases run at the same time")
     parser.add_argument("--only", nargs="*", help="these case ids only (results to work/)")
+    parser.add_argument("--every", type=int, default=1,
+                        help="every K-th case only, numbers 1, K + 1, ... (results to work/)")
     parser.add_argument("--generate-only", action="store_true", help="make the scenes, no runs")
     parser.add_argument("--rescore", action="store_true",
                         help="score the saved RESULT.json files again (no registration)")
@@ -310,6 +312,8 @@ def main() -> None:
         cases = [c for c in cases if c.half == args.half]
     if args.only:
         cases = [c for c in cases if c.case_id in set(args.only)]
+    if args.every > 1:
+        cases = [c for c in cases if int(c.case_id.split("-")[1]) % args.every == 1 % args.every]
     if args.generate_only:
         logs = WORK / "logs"
         logs.mkdir(parents=True, exist_ok=True)
@@ -335,13 +339,15 @@ def main() -> None:
         seconds = time.perf_counter() - t0
     from verdict_report import write_report
 
-    partial = args.quick or args.only or args.half != "both" or len(rows) < len(cases)
+    partial = (args.quick or args.only or args.every > 1 or args.half != "both"
+               or len(rows) < len(cases))
     out_dir = HERE / "work" if partial else RESULTS
     meta = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python "
                        f"{platform.python_version()}",
             "tiereg": _tiereg_commit(), "jobs": args.jobs, "wall_seconds": seconds,
-            "cases": len(rows), "selection": "quick" if args.quick else args.half}
+            "cases": len(rows), "selection": "quick" if args.quick else args.half
+            + (f", every {args.every}th case" if args.every > 1 else "")}
     meta.update({k: saved_meta[k] for k in ("date", "jobs") if k in saved_meta})
     path = write_report(rows, meta, out_dir, name="verdict-quick" if args.quick else "verdict")
     print(path)

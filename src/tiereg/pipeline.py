@@ -306,6 +306,23 @@ def _coarser_tie_cell(scale: float, moving: np.ndarray, ref: Reference,
     return 2 * tie_cell
 
 
+def _similarity(moving: np.ndarray, ref: Reference, *, tie_cell: float, method: str,
+                free_tilt: bool) -> tuple[CoarseResult, float]:
+    """:func:`~tiereg.coarse.similarity.register_similarity`, searched again with a coarser tie
+    cell while its answer lies at the smallest scale the tie cell lets the reference be searched
+    at (the block may be smaller still); the result and the tie cell it was found with."""
+    result = register_similarity(moving, ref, tie_cell=tie_cell, method=method,
+                                 free_tilt=free_tilt)
+    while (coarser := _coarser_tie_cell(result.T_ref_mov.scale, moving, ref,
+                                        tie_cell)) is not None:
+        log.info("answer at the smallest scale searched: tie cell %.4g -> %.4g", tie_cell,
+                 coarser)
+        tie_cell = coarser
+        result = register_similarity(moving, ref, tie_cell=tie_cell, method=method,
+                                     free_tilt=free_tilt)
+    return result, tie_cell
+
+
 def _height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
     return HeightStats.from_dz(height_differences(xyz_ref, sampler), len(xyz_ref))
 
@@ -434,17 +451,8 @@ def register(
             coarse_result = register_translation(mov_local[keep], grid,
                                                  reference_fine=ref.base)
         else:  # search, auto
-            coarse_result = register_similarity(mov_local[keep], ref, tie_cell=tie_cell,
-                                                method=coarse, free_tilt=free_tilt)
-            while (coarser := _coarser_tie_cell(coarse_result.T_ref_mov.scale, mov_local[keep],
-                                                ref, tie_cell)) is not None:
-                # found at the smallest scale the tie cell lets the reference be searched at:
-                # the block may be smaller still; a coarser tie cell searches further down
-                log.info("answer at the smallest scale searched: tie cell %.4g -> %.4g",
-                         tie_cell, coarser)
-                tie_cell = coarser
-                coarse_result = register_similarity(mov_local[keep], ref, tie_cell=tie_cell,
-                                                    method=coarse, free_tilt=free_tilt)
+            coarse_result, tie_cell = _similarity(mov_local[keep], ref, tie_cell=tie_cell,
+                                                  method=coarse, free_tilt=free_tilt)
         T_local = coarse_result.T_ref_mov
         log.info("coarse (%s): scale %.6g, heading %.2f deg, %s (%.1f s)", coarse,
                  T_local.scale, math.degrees(T_local.parameters().kappa) % 360.0,
