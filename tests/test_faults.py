@@ -349,8 +349,11 @@ def test_a_signal_during_apply_leaves_no_temporary_file(world, big_laz, tmp_path
     """Item 4: the temporary file beside the target goes with the process."""
     out = tmp_path / "o.laz"
     for _ in range(3):  # on a busy machine the command may finish before it is caught writing
+        # as from a terminal: a test run started in the background ignores SIGINT, and so would
+        # the command it starts
         proc = subprocess.Popen([str(EXE), "apply", world / "T.txt", big_laz, out],
-                                stderr=subprocess.PIPE, text=True, env=ENV)
+                                stderr=subprocess.PIPE, text=True, env=ENV,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         deadline = time.monotonic() + TIMEOUT_S
         while not list(tmp_path.glob(".o.laz.*.tmp")) and proc.poll() is None:
             assert time.monotonic() < deadline, "no temporary file appeared"

@@ -64,7 +64,7 @@ def test_translation_only_never_answers_rotation_or_scale_confidently(T_mov_ref)
     assert result.reasons
 
 
-@pytest.mark.parametrize(("seed", "method"), [(0, "pomf"), (1, "auto"), (2, "auto")])
+@pytest.mark.parametrize(("seed", "method"), [(0, "pomf"), (1, "auto")])
 def test_no_overlap_is_not_confident(seed, method):
     # tie points on terrain 1.6 km beyond the lidar's edge, and from another world entirely
     outside = make_scene(seed=seed, block_offset=(2600.0, 300.0), lidar_points=200_000)
