@@ -33,9 +33,9 @@ def test_an_answer_far_looser_than_another_pose_is_not_confident():
     assert 0.2 < loose.unexplained < MAX_UNEXPLAINED  # it would pass on its own
     noise = tight.unexplained
     assert loose.unexplained > NOISE_MULTIPLE * noise
-    verdict = _judged((tight, loose), 1, (100.0, 600.0), (-9.0, np.nan), noise)
+    verdict = _judged((tight, loose), 1, (100.0, 600.0), (9.0, np.nan), noise)
     assert not verdict.confident and verdict.confidence < 0.5
-    assert any("far more tightly" in r for r in verdict.reasons)
+    assert len(verdict.reasons) == 1 and "far more tightly" in verdict.reasons[0]
 
 
 def test_an_answer_that_leaves_much_of_the_relief_unexplained_is_not_confident():
