@@ -195,10 +195,11 @@ def score(case: Case, run: Run, result_path: Path, model_xyz: np.ndarray) -> Row
     """The case's row: see the module docstring for what counts as correct."""
     nan = float("nan")
     res = json.loads(result_path.read_text()) if result_path.is_file() else None
-    if case.truth is None:
+    truth = json.loads(Path(case.truth).read_text()) if case.truth is not None else None
+    if truth is None:
         true_scale = nan
     else:
-        T_true = Transform(np.asarray(json.loads(Path(case.truth).read_text())["T_ref_mov"]))
+        T_true = Transform(np.asarray(truth["T_ref_mov"]))
         true_scale = T_true.scale
     if res is None:
         return Row(case, run, true_scale, None, False, nan, nan, nan, nan, nan, nan, nan, False,
@@ -212,7 +213,8 @@ def score(case: Case, run: Run, result_path: Path, model_xyz: np.ndarray) -> Row
         return Row(case, run, true_scale, confident, not confident, nan, nan, nan, nan, cell,
                    nan, nan, fine_ran, note)
     T_est = Transform(np.asarray(res["T_ref_mov"]))
-    rms_tol = max(RMS_TOL_GSD, _truth_fit_rms_gsd(case.truth))
+    # the truth fit's own RMS residual over the model's points (GSD), where recorded
+    rms_tol = max(RMS_TOL_GSD, float((truth.get("fit_points") or {}).get("rms_gsd") or 0.0))
     heading, tilt = _angles(T_est, T_true)
     ds = T_est.scale / T_true.scale - 1.0
     centre = model_xyz.mean(axis=0, keepdims=True)
@@ -224,13 +226,6 @@ def score(case: Case, run: Run, result_path: Path, model_xyz: np.ndarray) -> Row
           and cells <= 1.0 and (not fine_ran or rms <= rms_tol))
     return Row(case, run, true_scale, confident, bool(ok), heading, tilt, ds, cells, cell, rms,
                mx, fine_ran, note)
-
-
-def _truth_fit_rms_gsd(truth: str) -> float:
-    """RMS residual of the truth's similarity fit over the model's points, in GSD (0 when not
-    recorded)."""
-    fit = json.loads(Path(truth).read_text()).get("fit_points") or {}
-    return float(fit.get("rms_gsd") or 0.0)
 
 
 def _thin_count(name: str, n: int) -> int:

@@ -313,7 +313,7 @@ def main() -> None:
     if args.only:
         cases = [c for c in cases if c.case_id in set(args.only)]
     if args.every > 1:
-        cases = [c for c in cases if int(c.case_id.split("-")[1]) % args.every == 1 % args.every]
+        cases = [c for c in cases if int(c.case_id.split("-")[1]) % args.every == 1]
     if args.generate_only:
         logs = WORK / "logs"
         logs.mkdir(parents=True, exist_ok=True)

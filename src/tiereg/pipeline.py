@@ -19,7 +19,7 @@ from ._json import dumps_json
 from ._version import __version__
 from .coarse import METHODS as COARSE_METHODS
 from .coarse import CoarseResult, register_translation
-from .coarse.scoring import SCALE_STEP, ScaleRange, tie_cell_for
+from .coarse.scoring import ScaleRange, tie_cell_for
 from .coarse.similarity import register_similarity
 from .crs import crs_label, crs_units
 from .errors import InputError
@@ -299,9 +299,9 @@ def _coarser_tie_cell(scale: float, moving: np.ndarray, ref: Reference,
     within a sweep step of the smallest scale the search could reach with ``tie_cell`` and the
     block still spans :data:`MIN_TIE_SIDE` doubled cells (a dense model gridded as if
     thinned), else None."""
-    lowest = ScaleRange.of(moving, ref, tie_cell).lowest
     extent = float(np.max(moving[:, :2].max(axis=0) - moving[:, :2].min(axis=0)))
-    if scale >= lowest * SCALE_STEP or extent / (2 * tie_cell) < MIN_TIE_SIDE:
+    if (not ScaleRange.of(moving, ref, tie_cell).at_lowest(scale)
+            or extent / (2 * tie_cell) < MIN_TIE_SIDE):
         return None
     return 2 * tie_cell
 
@@ -471,7 +471,8 @@ def register(
             confident = verdict.confident and not coarse_result.limits
             confidence = verdict.confidence if confident else min(verdict.confidence, 0.49)
             reasons.extend(verdict.reasons + coarse_result.limits)
-            log.info("verdict: %s, %s (%.1f s so far)", verdict.to_dict()["chosen"],
+            log.info("verdict: pose %d of %d (0: the coarse answer), %s (%.1f s so far)",
+                     verdict.chosen, len(verdict.poses),
                      "confident" if confident else "not confident", time.perf_counter() - t0)
         coarse_result = replace(coarse_result,
                                 T_ref_mov=_to_world(coarse_result.T_ref_mov, o_ref, o_mov)

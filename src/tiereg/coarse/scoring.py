@@ -87,9 +87,14 @@ class ScaleRange:
         hi = math.floor(math.log(self.highest) / math.log(step) + 1e-9)
         return step ** np.arange(lo, hi + 1, dtype=np.float64)
 
+    def at_lowest(self, sigma: float) -> bool:
+        """Within a sweep step (:data:`SCALE_STEP`) of the smallest scale: the block may be
+        smaller still."""
+        return sigma < self.lowest * SCALE_STEP
+
     def at_edge(self, sigma: float) -> bool:
         """Within a sweep step (:data:`SCALE_STEP`) of either end: the truth may lie beyond."""
-        return sigma < self.lowest * SCALE_STEP or sigma > self.highest / SCALE_STEP
+        return self.at_lowest(sigma) or sigma > self.highest / SCALE_STEP
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,6 @@ from .scoring import (
     MAX_REFERENCE_CELLS,
     MIN_OVERLAP,
     OBJECTS,
-    SCALE_STEP,
     Channel,
     Hypothesis,
     ScaleRange,
@@ -346,7 +345,7 @@ def register_similarity(
 
 def edge_reason(scales: ScaleRange, scale: float) -> str:
     """Why an answer at the edge of the scales searched is not trusted, and what to do."""
-    if scale < scales.lowest * SCALE_STEP:
+    if scales.at_lowest(scale):
         return (f"the scale found ({scale:.4g} reference units per model unit) is the smallest "
                 "at which this block can be told apart in this reference: the block may be "
                 "smaller still; crop the reference to the block's surroundings")
