@@ -354,7 +354,7 @@ def main() -> None:
     seconds = time.perf_counter() - t_all
     from sfm_report import write_report
 
-    target = out_root if args.quick else RESULTS
+    target = out_root if args.quick or args.scenes else RESULTS  # the results: every scene
     write_report(rows, attainable, built, target, seconds=seconds, build_seconds=t_build,
                  speed=machine_speed(), command=" ".join(["python", "benchmarks/sfm.py",
                                                            *sys.argv[1:]]),

@@ -121,7 +121,7 @@ def test_an_answer_at_the_smallest_scale_searched_is_searched_again_with_a_coars
     """The smallest scale searched is the reference's width over MAX_REFERENCE_CELLS tie cells:
     an answer within a sweep step of it may be cut off there, so the block is searched again
     with its tie cell doubled (the smallest scale halves) while it spans MIN_TIE_SIDE cells."""
-    from tiereg.pipeline import MIN_TIE_SIDE, _coarser_tie_cell
+    from tiereg.stages import MIN_TIE_SIDE, coarser_tie_cell
 
     rng = np.random.default_rng(0)
     lidar = np.column_stack([rng.uniform(0, 2000.0, (5000, 2)), rng.normal(0, 1, 5000)])
@@ -131,9 +131,9 @@ def test_an_answer_at_the_smallest_scale_searched_is_searched_again_with_a_coars
     lowest = ScaleRange.of(moving, ref, cell).lowest
     x0, y0, x1, y1 = ref.base.spec.bounds  # 2 km and the base grid's snapping
     assert lowest == pytest.approx(max(x1 - x0, y1 - y0) / (MAX_REFERENCE_CELLS * cell))
-    assert _coarser_tie_cell(lowest * 1.05, moving, ref, cell) == 2 * cell  # at the edge
-    assert _coarser_tie_cell(lowest * SCALE_STEP * 1.01, moving, ref, cell) is None  # inside
+    assert coarser_tie_cell(lowest * 1.05, moving, ref, cell) == 2 * cell  # at the edge
+    assert coarser_tie_cell(lowest * SCALE_STEP * 1.01, moving, ref, cell) is None  # inside
     # a block already only 2 * MIN_TIE_SIDE - 1 cells across is not gridded coarser
     narrow = 640.0 / (2 * MIN_TIE_SIDE - 1)
     edge = ScaleRange.of(moving, ref, narrow).lowest
-    assert _coarser_tie_cell(edge * 1.05, moving, ref, narrow) is None
+    assert coarser_tie_cell(edge * 1.05, moving, ref, narrow) is None

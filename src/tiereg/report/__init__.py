@@ -111,8 +111,9 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     those more than ``BLUNDER_NMADS`` robust standard deviations off (not the fine stage's
     weights), and there is no ``coarse_correlation.png``."""
     from ..io import open_points
-    from ..pipeline import SURFACE_RADIUS_SPACINGS, height_differences, register
+    from ..pipeline import register
     from ..reference import prepare_reference
+    from ..stages import SURFACE_RADIUS_SPACINGS, height_differences
     from ..surface import LocalSurface
     from ..transform import Transform
 
