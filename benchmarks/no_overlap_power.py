@@ -40,7 +40,7 @@ import coarse as bench  # noqa: E402
 
 from tiereg.coarse.scoring import HEIGHTS, OBJECTS, Channel, Scorer  # noqa: E402
 from tiereg.coarse.search import search  # noqa: E402
-from tiereg.coarse.similarity import TRUST, rival_ratio  # noqa: E402
+from tiereg.coarse.judge import TRUST, rival_ratio  # noqa: E402
 from tiereg.grid import cell_size_from_density  # noqa: E402
 from tiereg.io import open_points  # noqa: E402
 from tiereg.overlap import check_overlap  # noqa: E402

@@ -168,7 +168,7 @@ def test_a_fit_is_reused_only_for_a_hypothesis_that_starts_the_same(mountains):
     from dataclasses import replace
 
     from tiereg.coarse.search import search
-    from tiereg.coarse.similarity import FitCache, judge
+    from tiereg.coarse.judge import FitCache, judge
 
     spec, world, ref = mountains
     hidden = HiddenTransform(heading_deg=40.0, scale=2.0, model_origin=(0.0, 0.0, 0.0))
@@ -355,7 +355,7 @@ def test_a_leaning_block_is_explained_once_its_tilt_is_free(small_block):
 
 def test_choose_takes_the_pose_the_heights_confirm_over_a_better_correlation(small_block):
     from tiereg.coarse.search import HeightCheck, choose
-    from tiereg.coarse.similarity import rival_ratio
+    from tiereg.coarse.judge import rival_ratio
     from tiereg.surface import SurfaceSampler
 
     scene, ref = small_block
@@ -377,7 +377,8 @@ def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(smal
     from dataclasses import replace
 
     from tiereg.coarse.search import SearchResult
-    from tiereg.coarse.similarity import FitCache, judge_choice
+    from tiereg.coarse.judge import FitCache
+    from tiereg.coarse.similarity import judge_choice
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)
@@ -399,7 +400,8 @@ def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
     from dataclasses import replace
 
     from tiereg.coarse.search import HeightCheck, SearchResult
-    from tiereg.coarse.similarity import FitCache, _explains_better, judge
+    from tiereg.coarse.judge import FitCache, judge
+    from tiereg.coarse.similarity import _explains_better
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)
@@ -434,7 +436,7 @@ def test_the_checks_that_need_no_fit_rule_out_only_what_the_judge_refuses(small_
 
     from tiereg.coarse.scoring import MIN_OVERLAP
     from tiereg.coarse.search import SearchResult
-    from tiereg.coarse.similarity import TRUST, FitCache, judge, may_be_confident
+    from tiereg.coarse.judge import TRUST, FitCache, judge, may_be_confident
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)
@@ -471,7 +473,8 @@ def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_i
 
     from tiereg.coarse.scoring import OBJECTS
     from tiereg.coarse.search import SearchResult
-    from tiereg.coarse.similarity import FitCache, _judged_by_turns, judge_choice
+    from tiereg.coarse.judge import FitCache
+    from tiereg.coarse.similarity import _judged_by_turns, judge_choice
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)

@@ -266,8 +266,9 @@ class ArchiveSource(LasSource):
             f"{Path(first.path).parent}/ ({len(index.tiles)} tiles)")
         self.info = SourceInfo(path=label, format="las", count=count, bounds=b,
                                crs_wkt=index.crs_wkt,
-                               details={"files": len(index.tiles), "copc": sum(
-                                   t.copc for t in index.tiles), "point_format": first.point_format})
+                               details={"files": len(index.tiles),
+                                        "copc": sum(t.copc for t in index.tiles),
+                                        "point_format": first.point_format})
 
     @property
     def headers(self) -> list:  # type: ignore[override]

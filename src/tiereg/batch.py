@@ -159,7 +159,7 @@ def run_batch(blocks: Sequence[str | os.PathLike[str]],
     progress = progress or no_progress
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: is a file; give a folder for the results")
+        raise InputError(f"`out` {out}: is a file; give a folder for the results")
     names = block_names(blocks)
     out.mkdir(parents=True, exist_ok=True)
     index = TileIndex.build(reference, cache=out / "tile-index.json")

@@ -21,57 +21,12 @@ import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from ._version import __version__
+from .cli_options import EXIT_BAD_INPUT, Parser, build_parser
 from .errors import InputError, TieregError
 from .io.base import all_or_nothing
 
-EXIT_OK, EXIT_BAD_INPUT, EXIT_NOT_CONFIDENT = 0, 2, 3
+EXIT_OK, EXIT_NOT_CONFIDENT = 0, 3  # and EXIT_BAD_INPUT (2), which argparse exits with too
 log = logging.getLogger("tiereg")
-
-EXAMPLES = {
-    "register": """examples:
-  tiereg register tiepoints.txt lidar.laz -o RESULT.json
-  tiereg register sparse/0 tiles/ -o RESULT.json --output-points tie_in_lidar_frame.laz
-  tiereg register points3D.txt 'tiles/*.laz' -o RESULT.json --cell-size 40 -q
-  tiereg register ties.txt lidar.laz -o RESULT.json --coarse none --initial approx.txt
-  tiereg register ties.txt lidar.laz -o RESULT.json --report report/""",
-    "overlap": """examples:
-  tiereg overlap tiepoints.txt lidar.laz
-  tiereg overlap sparse/0 tiles/ --out overlap/   (overlap.json, overlap.geojson, overlap.png)""",
-    "report": """examples:
-  tiereg report RESULT.json report/     (run where `tiereg register` ran: it reads the inputs again)
-  then open report/report.html in a browser""",
-    "apply": """examples:
-  tiereg apply RESULT.json tiepoints.txt tiepoints_registered.txt
-  tiereg apply RESULT.json model.ply model_georef.ply
-  tiereg apply --inverse RESULT.json lidar.laz lidar_in_model_frame.laz
-  tiereg apply matrix.txt dsm.tif dsm_moved.tif      (16 numbers: PDAL/CloudCompare matrix)""",
-    "grid": """examples:
-  tiereg grid lidar.laz dsm.tif --cell-size 1 --stat max
-  tiereg grid 'tiles/*.laz' dem.tif --cell-size 2 --stat min
-  tiereg grid archive/ dsm.tif --cell-size 1 --workers 2    (a tile a task on 2 processes)""",
-    "batch": """examples:
-  tiereg batch blocks/*.txt 'archive/*.laz' --out results/ --workers 2
-  tiereg batch a.txt b.txt archive/ --out results/ --scheduler tcp://10.0.0.5:8786 --report""",
-    "info": """examples:
-  tiereg info lidar.laz
-  tiereg info sparse/0 --json""",
-    "simulate": """examples:
-  tiereg simulate scene1
-  tiereg simulate scene2 --kind urban --seed 7 --overlap 0.5 --heading 130 --scale 3.2808
-  tiereg simulate small --world-size 3000 --lidar-size 2000 --block-size 1500""",
-    "demo": """examples:
-  tiereg demo
-  tiereg demo --out /tmp/tiereg-demo -q; echo $?   # 0: confident, 3: not""",
-}
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (exit code 2)."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
 
 def _progress_factory(quiet: bool):
     if quiet or not sys.stderr.isatty():
@@ -83,148 +38,6 @@ def _progress_factory(quiet: bool):
                     file=sys.stderr, dynamic_ncols=True)
 
     return make
-
-
-def _add_common(p: argparse.ArgumentParser) -> None:
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("-q", "--quiet", action="store_true", help="print errors only, no progress")
-    g.add_argument("-v", "--verbose", action="count", default=0, help="more detail (-vv: debug)")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    from .coarse import METHODS as COARSE
-    from .pipeline import FINE_METHODS
-
-    parser = _Parser(
-        prog="tiereg",
-        description="Co-register photogrammetric tie points (moving) with airborne lidar "
-                    "(reference), with no initial guess.",
-        epilog="Run 'tiereg COMMAND --help' for a command's options and examples.",
-    )
-    parser.add_argument("--version", action="version", version=f"tiereg {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-
-    def add(name: str, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_, epilog=EXAMPLES.get(name),
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
-        _add_common(p)
-        return p
-
-    p = add("register", "Register MOVING points (tie points) to a REFERENCE (lidar or DSM).")
-    p.add_argument("moving", metavar="MOVING", help="tie points: XYZ/CSV, PLY, LAS/LAZ, COLMAP "
-                   "points3D.txt/.bin or model folder, Bundler .out")
-    p.add_argument("reference", metavar="REFERENCE", nargs="+",
-                   help="lidar LAS/LAZ file(s), a folder or glob of tiles, or a GeoTIFF DSM")
-    p.add_argument("-o", "--output", required=True, metavar="RESULT.json",
-                   help="where to write the result")
-    p.add_argument("--coarse", choices=COARSE, default="auto", help="coarse method (default auto)")
-    p.add_argument("--fine", choices=FINE_METHODS, default="auto", help="fine method")
-    p.add_argument("--cell-size", type=float, metavar="M",
-                   help="grid cell in reference units (default: from the tie-point density)")
-    p.add_argument("--level", choices=("auto", "cameras", "points", "none"), default="auto",
-                   help="vertical of a model in any orientation: from a COLMAP/Bundler model's "
-                   "cameras, from the points' dominant plane, or none (default auto); not used "
-                   "with --initial or --coarse none, whose pose already says which way is up")
-    p.add_argument("--free-tilt", action="store_true",
-                   help="the moving points may lean by a degree or more (a model levelled from "
-                   "its own points; --level does this by itself): heights are compared after "
-                   "a fitted plane")
-    p.add_argument("--initial", metavar="TRANSFORM",
-                   help="a starting pose (RESULT.json or a 16-number matrix file); with "
-                   "--coarse none the fine stage starts from it")
-    p.add_argument("--report", metavar="DIR",
-                   help="write a report: maps, histograms, statistics, control points, report.html")
-    p.add_argument("--output-points", metavar="PATH",
-                   help="also write the moving points in the reference frame (format by suffix)")
-    p.add_argument("--moving-format", metavar="FMT", help="override format detection")
-    p.add_argument("--reference-format", metavar="FMT", help="override format detection")
-    p.add_argument("--seed", type=int, default=0, help="accepted for scripts that pass one: the "
-                   "registration draws no random numbers, so every run gives the same answer")
-
-    p = add("overlap", "Do MOVING and REFERENCE overlap, and where? A quick answer from the "
-                       "coarse registration.")
-    p.add_argument("moving", metavar="MOVING")
-    p.add_argument("reference", metavar="REFERENCE", nargs="+")
-    p.add_argument("--out", metavar="DIR", help="write overlap.json, overlap.geojson (the "
-                   "outline) and overlap.png")
-    p.add_argument("--coarse", choices=COARSE, default="auto", help="coarse method (default auto)")
-    p.add_argument("--cell-size", type=float, metavar="M")
-    p.add_argument("--moving-format", metavar="FMT")
-    p.add_argument("--reference-format", metavar="FMT")
-
-    p = add("report", "Write the report of an earlier registration from its RESULT.json.")
-    p.add_argument("result", metavar="RESULT.json")
-    p.add_argument("out", metavar="DIR", help="report folder (created if needed)")
-
-    p = add("apply", "Apply a transform (RESULT.json or a 4x4 matrix file) to a point file or DSM.")
-    p.add_argument("transform", metavar="TRANSFORM", help="RESULT.json, JSON with 'matrix', or "
-                   "a text file of 16 numbers")
-    p.add_argument("input", metavar="IN", help="points (any readable format) or a GeoTIFF DSM")
-    p.add_argument("output", metavar="OUT", help="output; LAS/LAZ keeps all point attributes")
-    p.add_argument("--inverse", action="store_true",
-                   help="apply the inverse (reference frame -> moving frame)")
-    p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
-
-    p = add("grid", "Rasterize points into a GeoTIFF (streaming; memory follows the grid).")
-    p.add_argument("input", metavar="POINTS", nargs="+", help="point file(s), folder or glob")
-    p.add_argument("output", metavar="OUT.tif")
-    p.add_argument("--cell-size", type=float, metavar="M",
-                   help="cell size in file units (default: about 4 points per cell)")
-    p.add_argument("--stat", choices=("mean", "min", "max", "median", "count"), default="mean")
-    p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
-    _add_cluster(p)
-
-    p = add("batch", "Register many BLOCKS (tie points) against one lidar archive, each found "
-                     "anywhere in it.")
-    p.add_argument("paths", metavar="BLOCKS... REFERENCE", nargs="+", help="the blocks' tie "
-                   "points, then the archive: a folder or quoted glob of LAS/LAZ/COPC tiles")
-    p.add_argument("--out", required=True, metavar="DIR", help="results: a folder per block "
-                   "(RESULT.json), summary.csv, overview.png; blocks done there are skipped")
-    p.add_argument("--report", action="store_true", help="a report per block")
-    p.add_argument("--scale-range", type=float, nargs=2, default=(0.25, 4.0), metavar=("LO",
-                   "HI"), help="the blocks' scale, reference units per model unit (default "
-                   "0.25 4); a narrower range searches fewer windows")
-    _add_cluster(p)
-
-    p = add("info", "Describe a point file, tile set or DSM: format, count, extent, CRS, density.")
-    p.add_argument("input", metavar="FILE", nargs="+")
-    p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--format", metavar="FMT", help="input format, if detection fails")
-
-    p = add("simulate", "Simulate a scene with a known answer: lidar (reference.laz), tie points "
-                        "(tiepoints.xyz) and truth.json.")
-    p.add_argument("out", metavar="OUTDIR")
-    p.add_argument("--kind", choices=("farmland", "suburban", "urban", "forest", "mountains"),
-                   default="suburban")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overlap", type=float, default=1.0, help="share of the block inside the "
-                   "lidar footprint, in (0, 1]; the coarse stage needs 0.3 or more")
-    p.add_argument("--heading", type=float, help="hidden heading in degrees (default random)")
-    p.add_argument("--scale", type=float, help="hidden scale, model units per metre (default "
-                   "random in 0.25-4)")
-    p.add_argument("--lidar-density", type=float, default=2.0, metavar="PTS_PER_M2")
-    p.add_argument("--tie-density", type=float, default=350.0, metavar="PTS_PER_KM2")
-    p.add_argument("--world-size", type=float, default=8000.0, metavar="M")
-    p.add_argument("--lidar-size", type=float, default=4000.0, metavar="M")
-    p.add_argument("--block-size", type=float, default=3000.0, metavar="M")
-
-    p = add("demo", "Register the shipped COLMAP model to the shipped lidar sample and compare "
-                    "with the truth.")
-    p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder")
-    from .calibrate.cli import EXAMPLES as CALIBRATE_EXAMPLES
-    from .calibrate.cli import add_arguments as calibrate_args
-
-    EXAMPLES.setdefault("calibrate", CALIBRATE_EXAMPLES)
-    calibrate_args(add("calibrate", "Calibrate the cameras of a COLMAP MODEL against a lidar "
-                                    "REFERENCE (self-calibrating bundle adjustment)."))
-    return parser
-
-
-def _add_cluster(p: argparse.ArgumentParser) -> None:
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--workers", type=int, metavar="N", help="a local Dask cluster of N processes")
-    g.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler "
-                   "(tcp://host:8786); its workers must see the same files")
 
 
 def _setup_logging(args: argparse.Namespace) -> None:
@@ -558,11 +371,10 @@ def _output_folders(args: argparse.Namespace) -> list[str]:
     return [folder] if folder else []
 
 
-def _cli_message(text: str, command: str, parser: argparse.ArgumentParser) -> str:
+def _cli_message(text: str, command: str, parser: Parser) -> str:
     """One printable line, with the library's parameter names (`cell_size`) given as the
     command's options (--cell-size)."""
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    options = sub.choices[command]._option_string_actions
+    options = parser.commands[command].flags
 
     def flag(m: re.Match) -> str:
         name = m.group(1)

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .archive import Tile, TileIndex, tile_chunks
-from .errors import InputError
+from .errors import InputError, MissingDependencyError
 from .grid import Grid, GridAccumulator, GridSpec, median_sample_for, nice_size
 from .progress import ProgressFactory, no_progress
 from .reference import Reference, reference_spec, surface_mask
@@ -45,27 +45,27 @@ def cluster(*, workers: int | None = None, scheduler: str | None = None,
     """A ``distributed.Client`` for ``workers`` local worker processes (``processes=False``:
     threads, for tests) or for the scheduler at ``scheduler``; ``None`` with neither."""
     if workers is not None and scheduler is not None:
-        raise InputError("give --workers or --scheduler, not both")
+        raise InputError("give `workers` or `scheduler`, not both")
     if workers is None and scheduler is None:
         yield None
         return
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise InputError("--workers and --scheduler need Dask: pip install 'tiereg[distributed]'"
-                         ) from None
+        raise MissingDependencyError("`workers` and `scheduler` need Dask: pip install "
+                                     "'tiereg[distributed]'") from None
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
         except (OSError, TimeoutError) as exc:
-            raise InputError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there "
+            raise InputError(f"`scheduler` {scheduler}: cannot reach a Dask scheduler there "
                              f"({exc}); start one (dask scheduler) or check the address"
                              ) from None
         with client:
             yield client
         return
     if not (isinstance(workers, int) and workers >= 1):
-        raise InputError(f"--workers must be a whole number of at least 1, got {workers}")
+        raise InputError(f"`workers` must be a whole number of at least 1, got {workers}")
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
                       dashboard_address=":0", silence_logs=logging.ERROR) as local, \
             Client(local) as client:

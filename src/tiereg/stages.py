@@ -20,6 +20,7 @@ from .coarse import CoarseResult, register_translation
 from .coarse.scoring import MAX_REFERENCE_CELLS, MAX_TIE_SIDE, ScaleRange
 from .coarse.similarity import register_similarity
 from .errors import InputError
+from .evaluate import MIN_LIDAR_POINTS, SURFACE_RADIUS_SPACINGS, height_differences
 from .fine import FineResult, register_fine
 from .quality import HeightStats, PointResiduals
 from .reference import Reference
@@ -30,10 +31,6 @@ from .verdict import HOPELESS_UNEXPLAINED, Verdict, judge_refined
 log = logging.getLogger(__name__)
 
 MIN_TIE_SIDE = 32  # a coarser tie cell is tried only while the block spans this many cells
-# the quality heights: local planes of the lidar within this many spacings of a tie point; half a
-# spacing inside the corridor the fine stage reads (2.5 spacings at least), so that the fine
-# stage's move cannot take a neighbour out of it
-SURFACE_RADIUS_SPACINGS = 2.0
 
 
 @dataclass(frozen=True)
@@ -56,15 +53,6 @@ class Frames:
         ``T_start``)."""
         return Transform.from_translation(self.o_ref).inverse @ Transform.from_translation(
             self.o_mov)
-
-
-def height_differences(xyz_ref: np.ndarray, surface: SurfaceSampler | LocalSurface
-                       ) -> np.ndarray:
-    """``Z(x, y) - z`` of points (the surface's local frame) on the surface; NaN off it."""
-    if isinstance(surface, LocalSurface):
-        return surface.heights(xyz_ref[:, 0], xyz_ref[:, 1]) - xyz_ref[:, 2]
-    z, ok = surface.sample(xyz_ref[:, 0], xyz_ref[:, 1])
-    return np.where(ok, z - xyz_ref[:, 2], np.nan)
 
 
 def height_stats(xyz_ref: np.ndarray, sampler: SurfaceSampler) -> HeightStats:
@@ -264,7 +252,8 @@ def heights_after(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start
     placed = fine.T_local.apply(mov_local)
     surface: SurfaceSampler | LocalSurface = ref.surface()
     result = fine.result
-    if result is not None and result.lidar is not None and len(result.lidar) >= 50:
+    if (result is not None and result.lidar is not None
+            and len(result.lidar) >= MIN_LIDAR_POINTS):
         surface = LocalSurface(result.lidar, radius=SURFACE_RADIUS_SPACINGS * ref.spacing)
     dz_after = height_differences(placed, surface)
     after = HeightStats.from_dz(dz_after, len(placed))

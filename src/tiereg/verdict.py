@@ -14,11 +14,11 @@ robust 7-parameter fit of the tie points' heights to the reference surface
    refined fits tell two poses apart, they decide).
 3. **Distinctness.** Against each rival, the tie points one pose explains and the other does
    not are counted both ways, ``b`` and ``c``, each tie point as a share of the registration's
-   cell it lands in (points crowded into one cell sample one piece of surface); if the two poses were equally good each such
-   point would be a fair coin, so ``z = (b - c) / sqrt(b + c)`` is a standard normal under that
-   hypothesis (McNemar 1947). The answer must stand out from every rival by :data:`MIN_Z`.
-   On flat, featureless ground every pose explains the heights alike and ``z`` stays small: the
-   verdict then says so instead of guessing.
+   cell it lands in (points crowded into one cell sample one piece of surface); if the two poses
+   were equally good each such point would be a fair coin, so ``z = (b - c) / sqrt(b + c)`` is
+   a standard normal under that hypothesis (McNemar 1947). The answer must stand out from every
+   rival by :data:`MIN_Z`. On flat, featureless ground every pose explains the heights alike and
+   ``z`` stays small: the verdict then says so instead of guessing.
 4. **Settled.** The answer's refined fit stays near it (within the fine stage's
    :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS`): a fit that runs away says the heights fit best
    elsewhere.

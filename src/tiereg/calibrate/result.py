@@ -75,8 +75,8 @@ class CalibrationResult:
     ``check_before``/``check_after``: height residuals against the lidar surface at the held-out
     check points (tie points on strictly planar patches, never used as control; the
     ``n_check_outliers`` of them off the lidar, such as vehicles, are left out), after the
-    registration alone and after the calibration. ``model``: the calibrated ``pycolmap.Reconstruction`` in
-    the reference frame (``None`` when the calibration did not run).
+    registration alone and after the calibration. ``model``: the calibrated
+    ``pycolmap.Reconstruction`` in the reference frame (``None`` when the calibration did not run).
     """
 
     confident: bool

@@ -78,7 +78,7 @@ def _parse_refine(refine) -> tuple[str, ...]:
         refine = tuple(w.strip() for w in refine.split(",") if w.strip())
     bad = [w for w in refine if w not in REFINE_KINDS]
     if bad or not refine:
-        raise InputError(f"--refine: unknown {', '.join(bad) or 'empty list'}; give a comma "
+        raise InputError(f"`refine`: unknown {', '.join(bad) or 'empty list'}; give a comma "
                          f"list of {', '.join(REFINE_KINDS)}")
     return tuple(refine)
 

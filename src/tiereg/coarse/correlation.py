@@ -334,7 +334,8 @@ def second_peak(surface: np.ndarray, best: tuple[int, int], *, exclusion: int = 
     rival. Returns ``-inf`` when there is none.
     """
     s = np.where(np.isfinite(surface), surface, -np.inf)
-    is_max = (s == ndimage.maximum_filter(s, size=3, mode="constant", cval=-np.inf)) & np.isfinite(s)
+    peaks = ndimage.maximum_filter(s, size=3, mode="constant", cval=-np.inf)
+    is_max = (s == peaks) & np.isfinite(s)
     rows, cols = np.nonzero(is_max)
     far = np.maximum(np.abs(rows - best[0]), np.abs(cols - best[1])) > exclusion
     return float(s[rows[far], cols[far]].max()) if far.any() else float("-inf")

@@ -60,12 +60,12 @@ def fit_to_surface(
     ``place(params)`` returns the points ``(N, 3)`` in surface coordinates without the height
     offset; the offset is profiled out as ``tz = median(Z(x, y) - z)`` and the loss is
     the mean of ``rho((Z - z - tz) / s)`` with Tukey's bounded ``rho`` and a fixed scale ``s``
-    (NMAD at the start), so canopy points and blunders cannot pull the answer. A compass (pattern) search
-    minimises it: derivative-free, hence indifferent to the noisy gradients of a gridded surface.
-    It starts with ``steps`` per parameter, halves them when no move helps, and stops when they
-    are below ``tol_fraction`` of the start. Points count at a pose when they lie at least
-    :data:`EDGE_MARGIN_CELLS` inside the surface there; a pose that loses more than
-    ``1 - MIN_KEPT`` of the starting points is refused.
+    (NMAD at the start), so canopy points and blunders cannot pull the answer. A compass
+    (pattern) search minimises it: derivative-free, hence indifferent to the noisy gradients of
+    a gridded surface. It starts with ``steps`` per parameter, halves them when no move helps,
+    and stops when they are below ``tol_fraction`` of the start. Points count at a pose when
+    they lie at least :data:`EDGE_MARGIN_CELLS` inside the surface there; a pose that loses more
+    than ``1 - MIN_KEPT`` of the starting points is refused.
     """
     return fit_to_surface_many(place, sampler, [initial], steps, tol_fraction=tol_fraction,
                                max_iterations=max_iterations)[0]

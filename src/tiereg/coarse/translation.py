@@ -101,7 +101,6 @@ def register_translation(
     mov = prepare(mgrid["median"], mgrid.mask)
     ncc, overlap, score = _best_shift(ref, mov)
     valid = np.isfinite(score)
-    reasons: list[str] = []
 
     pomf = cross_power_correlation(ref.image, mov.image, normalization="pomf")
     proposals = [(p, "pomf") for p in local_maxima(pomf, k=n_candidates, valid=valid)]
@@ -111,23 +110,9 @@ def register_translation(
         dr, dc = shift_of_index(index, mgrid.spec.shape)
         return (spec.x0 - mgrid.spec.x0 + dc * c, spec.y0 - mgrid.spec.y0 - dr * c)
 
-    candidates: list[tuple[Candidate, tuple[int, int]]] = []
-    seen: set[tuple[int, int]] = set()
-    for (i, j), origin in proposals:
-        # a POMF peak is verified by the best masked-NCC score within one cell of it
-        win = score[max(0, i - 1) : i + 2, max(0, j - 1) : j + 2]
-        di, dj = np.unravel_index(int(np.argmax(win)), win.shape)
-        bi, bj = max(0, i - 1) + int(di), max(0, j - 1) + int(dj)
-        if (bi, bj) in seen or not np.isfinite(score[bi, bj]):
-            continue
-        seen.add((bi, bj))
-        sx, sy = to_map((bi, bj))
-        candidates.append((Candidate(sx, sy, float(score[bi, bj]), float(ncc[bi, bj]),
-                                     float(overlap[bi, bj]), origin), (bi, bj)))
-
+    candidates = _verified(proposals, score, ncc, overlap, to_map)
     if not candidates:
-        T = Transform.identity()
-        return CoarseResult(T, "pomf", False, 0.0, c, 0.0, 1.0, 0.0, 0.0, (),
+        return CoarseResult(Transform.identity(), "pomf", False, 0.0, c, 0.0, 1.0, 0.0, 0.0, (),
                             ("the two data sets do not overlap by at least "
                              f"{MIN_OVERLAP:.0%} of the moving block at any shift",),
                             time.perf_counter() - t_start)
@@ -139,38 +124,14 @@ def register_translation(
     psr = peak_to_sidelobe(np.where(valid, score, 0.0), best_idx)
 
     # sub-cell: parabola on the NCC surface, then least squares against the reference surface
-    sub = subpixel_peak(ncc, best_idx)
-    shift_xy = np.array(to_map(sub))
     sampler = SurfaceSampler.from_grid(reference_fine or reference, stat=reference_stat)
-    tz0 = height_offset(moving_xyz, sampler, shift_xy)
-    fit = refine_translation(moving_xyz, sampler, np.array([*shift_xy, tz0]), search_radius=c)
-    moved = np.hypot(fit.translation[0] - shift_xy[0], fit.translation[1] - shift_xy[1])
-    if fit.converged and moved <= 1.0 * c:
-        translation = np.array(fit.translation)
-    else:
-        translation = np.array([*shift_xy, tz0])
-        reasons.append("sub-cell refinement did not converge; kept the correlation peak")
-
-    if best.ncc < MIN_NCC:
-        reasons.append(f"weak correlation at the best shift (NCC {best.ncc:.2f} < {MIN_NCC})")
-    if peak_ratio < MIN_PEAK_RATIO:
-        reasons.append(
-            f"the correlation peak is not distinct (best/second {peak_ratio:.2f} < "
-            f"{MIN_PEAK_RATIO})"
-        )
-    if best.overlap < MIN_OVERLAP:
-        reasons.append(f"small overlap ({best.overlap:.0%} of the moving block)")
-
+    shift_xy = np.array(to_map(subpixel_peak(ncc, best_idx)))
+    translation, fit, reasons = _sub_cell(moving_xyz, sampler, shift_xy, c)
+    reasons += _peak_reasons(best, peak_ratio)
     check: dict[str, float] = {}
     if model_check and np.isfinite(fit.sigma0):
         check = _model_check(moving_xyz, sampler, translation, fit.sigma0, c)
-        rival = min(v for k, v in check.items() if k != "translation_only")
-        if rival < MODEL_CHECK_GAIN * fit.sigma0:
-            reasons.append(
-                "a rotated or scaled moving block fits the reference better than a shifted one "
-                f"(height residual NMAD {rival:.3g} vs {fit.sigma0:.3g}): rotation or scale is "
-                "present, which the translation-only search cannot recover"
-            )
+        reasons += _model_reasons(check, fit.sigma0)
 
     confident = not any(r for r in reasons if not r.startswith("sub-cell"))
     confidence = float(np.clip(best.ncc, 0, 1) * np.clip(peak_ratio - 1, 0, 1))
@@ -196,3 +157,60 @@ def register_translation(
             "moving_occupancy": round(mgrid.occupancy, 4),
         },
     )
+
+
+def _verified(proposals: list, score: np.ndarray, ncc: np.ndarray, overlap: np.ndarray,
+              to_map) -> list[tuple[Candidate, tuple[int, int]]]:
+    """The proposed peaks, each verified by the best masked-NCC score within one cell of it
+    (a POMF peak may sit beside it), once each."""
+    candidates: list[tuple[Candidate, tuple[int, int]]] = []
+    seen: set[tuple[int, int]] = set()
+    for (i, j), origin in proposals:
+        win = score[max(0, i - 1) : i + 2, max(0, j - 1) : j + 2]
+        di, dj = np.unravel_index(int(np.argmax(win)), win.shape)
+        bi, bj = max(0, i - 1) + int(di), max(0, j - 1) + int(dj)
+        if (bi, bj) in seen or not np.isfinite(score[bi, bj]):
+            continue
+        seen.add((bi, bj))
+        sx, sy = to_map((bi, bj))
+        candidates.append((Candidate(sx, sy, float(score[bi, bj]), float(ncc[bi, bj]),
+                                     float(overlap[bi, bj]), origin), (bi, bj)))
+    return candidates
+
+
+def _sub_cell(moving_xyz: np.ndarray, sampler: SurfaceSampler, shift_xy: np.ndarray,
+              cell: float):
+    """The translation by least squares against the reference surface from the correlation
+    peak ``shift_xy``, or the peak where that does not converge within a cell; the fit and the
+    reasons."""
+    tz0 = height_offset(moving_xyz, sampler, shift_xy)
+    fit = refine_translation(moving_xyz, sampler, np.array([*shift_xy, tz0]),
+                             search_radius=cell)
+    moved = np.hypot(fit.translation[0] - shift_xy[0], fit.translation[1] - shift_xy[1])
+    if fit.converged and moved <= 1.0 * cell:
+        return np.array(fit.translation), fit, []
+    return (np.array([*shift_xy, tz0]), fit,
+            ["sub-cell refinement did not converge; kept the correlation peak"])
+
+
+def _model_reasons(check: dict[str, float], sigma0: float) -> list[str]:
+    rival = min(v for k, v in check.items() if k != "translation_only")
+    if rival >= MODEL_CHECK_GAIN * sigma0:
+        return []
+    return ["a rotated or scaled moving block fits the reference better than a shifted one "
+            f"(height residual NMAD {rival:.3g} vs {sigma0:.3g}): rotation or scale is "
+            "present, which the translation-only search cannot recover"]
+
+
+def _peak_reasons(best: Candidate, peak_ratio: float) -> list[str]:
+    reasons = []
+    if best.ncc < MIN_NCC:
+        reasons.append(f"weak correlation at the best shift (NCC {best.ncc:.2f} < {MIN_NCC})")
+    if peak_ratio < MIN_PEAK_RATIO:
+        reasons.append(
+            f"the correlation peak is not distinct (best/second {peak_ratio:.2f} < "
+            f"{MIN_PEAK_RATIO})"
+        )
+    if best.overlap < MIN_OVERLAP:
+        reasons.append(f"small overlap ({best.overlap:.0%} of the moving block)")
+    return reasons

@@ -208,27 +208,11 @@ def solve_helmert(
         w = robust_weights(rr / scale_r, tukey=it > HUBER_ITERATIONS)
         if w.sum() < 10:  # everything beyond the biweight's reach: keep descending with Huber
             w = robust_weights(rr / scale_r, tukey=False)
-        while True:
-            free = [i for i in range(7) if i not in held]
-            # unknowns as displacements of the block (u = theta * lever): conditioned normals
-            Af = A[:, free] / lever[free]
-            N, N_free = (Af * w[:, None]).T @ Af, free
-            b = -(Af * w[:, None]).T @ rr
-            step_scaled = np.linalg.lstsq(N, b, rcond=None)[0]
-            dof = max(float(w.sum()) - len(free), 1.0)
-            sigma0 = math.sqrt(float(np.sum(w * rr**2)) / dof)
-            # parameters the data cannot determine: hold the worst, one at a time, solve again
-            # (a vanishing ridge keeps singular normals invertible: their variances become
-            # huge); the spread of the residuals, not their offset, is the noise level here
-            ridge = 1e-12 * max(float(np.trace(N)) / len(free), 1e-300)
-            cov = min(sigma0, scale_r) ** 2 * np.linalg.inv(N + ridge * np.eye(len(free)))
-            sd_disp = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            if sd_disp.max() > hold_displacement and len(free) > 1:
-                held.append(free[int(np.argmax(sd_disp))])
-                continue
-            break
+        # parameters the data cannot determine are held (``held`` grows)
+        Af, N, N_free, step_scaled, sigma0 = _normal_step(
+            A, w, rr, lever, held, scale_r=scale_r, hold_displacement=hold_displacement)
         step = np.zeros(7)
-        step[free] = step_scaled / lever[free]
+        step[N_free] = step_scaled / lever[N_free]
         if not np.all(np.isfinite(step_scaled)) or step[0] <= -0.5:
             break  # a step that would halve the block or worse is a runaway, not a fit
         last = (Af, w, rr, q[ok], g[ok])
@@ -241,22 +225,57 @@ def solve_helmert(
         if it > HUBER_ITERATIONS and float(np.max(np.abs(step) * lever)) < tol:
             converged = True
             break
-    sigma = np.full(7, np.nan)
-    if N_free and np.isfinite(sigma0):
-        try:
-            cov = sigma0**2 * np.linalg.inv(N)
-            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            if last is not None and last[0].shape[1] == len(N_free):  # errors correlated in
-                # space or by surface count too (from the last completed step's rows)
-                Af, w, rr, q_ok, g = last
-                groups = [spatial_blocks(q_ok[:, :2]), surface_classes(g)]
-                if hasattr(observe, "surface_class"):
-                    groups.append(observe.surface_class(q_ok))
-                for labels in groups:
-                    sd = np.maximum(sd, jackknife_sd(Af, w, rr, labels))
-            sigma[N_free] = sd / lever[N_free]
-        except np.linalg.LinAlgError:
-            pass
+    sigma = _precision(N, N_free, sigma0, last, observe, lever)
     return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
                       int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
                       converged)
+
+
+def _normal_step(A: np.ndarray, w: np.ndarray, rr: np.ndarray, lever: np.ndarray,
+                 held: list[int], *, scale_r: float, hold_displacement: float):
+    """One weighted Gauss-Newton step with the unknowns as displacements of the block
+    (``u = theta * lever``: conditioned normals). Parameters the data cannot determine (a
+    standard deviation that moves the block by more than ``hold_displacement``) are held, the
+    worst first, one at a time, and the step solved again; ``held`` grows in place. Returns the
+    scaled design rows, the normals and their free parameters, the scaled step and sigma0."""
+    while True:
+        free = [i for i in range(7) if i not in held]
+        Af = A[:, free] / lever[free]
+        N = (Af * w[:, None]).T @ Af
+        b = -(Af * w[:, None]).T @ rr
+        step_scaled = np.linalg.lstsq(N, b, rcond=None)[0]
+        dof = max(float(w.sum()) - len(free), 1.0)
+        sigma0 = math.sqrt(float(np.sum(w * rr**2)) / dof)
+        # a vanishing ridge keeps singular normals invertible (their variances become huge); the
+        # spread of the residuals, not their offset, is the noise level here
+        ridge = 1e-12 * max(float(np.trace(N)) / len(free), 1e-300)
+        cov = min(sigma0, scale_r) ** 2 * np.linalg.inv(N + ridge * np.eye(len(free)))
+        sd_disp = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        if sd_disp.max() > hold_displacement and len(free) > 1:
+            held.append(free[int(np.argmax(sd_disp))])
+            continue
+        return Af, N, free, step_scaled, sigma0
+
+
+def _precision(N: np.ndarray, N_free: list[int], sigma0: float, last, observe: Observer,
+               lever: np.ndarray) -> np.ndarray:
+    """Standard deviations of the 7 parameters (NaN where held): from the normals, and no
+    smaller than the jackknife over spatial blocks and surface classes of the last completed
+    step's rows (errors correlated in space or by surface count too)."""
+    sigma = np.full(7, np.nan)
+    if not N_free or not np.isfinite(sigma0):
+        return sigma
+    try:
+        cov = sigma0**2 * np.linalg.inv(N)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        if last is not None and last[0].shape[1] == len(N_free):
+            Af, w, rr, q_ok, g = last
+            groups = [spatial_blocks(q_ok[:, :2]), surface_classes(g)]
+            if hasattr(observe, "surface_class"):
+                groups.append(observe.surface_class(q_ok))
+            for labels in groups:
+                sd = np.maximum(sd, jackknife_sd(Af, w, rr, labels))
+        sigma[N_free] = sd / lever[N_free]
+    except np.linalg.LinAlgError:
+        pass
+    return sigma

@@ -300,8 +300,8 @@ class LasSource(PointSource):
                         yield arr
             except read_errors() as exc:
                 raise FormatError(
-                    f"{path}: reading the points failed ({short_error(exc)}); the file is corrupt or "
-                    "truncated - re-export or re-download it"
+                    f"{path}: reading the points failed ({short_error(exc)}); the file is "
+                    "corrupt or truncated - re-export or re-download it"
                 ) from None
 
 

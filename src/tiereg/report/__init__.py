@@ -110,11 +110,9 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     The same files as :func:`write_report`, but for what RESULT.json does not keep: blunders are
     those more than ``BLUNDER_NMADS`` robust standard deviations off (not the fine stage's
     weights), and there is no ``coarse_correlation.png``."""
+    from ..evaluate import evaluate
     from ..io import open_points
-    from ..pipeline import register
     from ..reference import prepare_reference
-    from ..stages import SURFACE_RADIUS_SPACINGS, height_differences
-    from ..surface import LocalSurface
     from ..transform import Transform
 
     path = Path(result_json)
@@ -144,29 +142,17 @@ def report_from_result_file(result_json: str | os.PathLike[str],
     base_cell = data.get("base_cell") or cell / 4  # the same surface as the registration's
     reference = replace(prepare_reference(source, base_cell=float(base_cell), progress=progress),
                         source_args=tuple(inputs["reference_paths"]))
-    opts = dict(coarse="none", fine="none", cell_size=cell,
-                moving_format=inputs.get("moving_format"))
-    after = register(given["moving"], reference, initial=T_final, **opts)
-    prior = register(given["moving"], reference, initial=T_before, **opts)
-    assert after.residuals is not None and prior.residuals is not None
     # heights against the lidar's own points, as the registration measured them
-    local_after = after.residuals.xyz - reference.origin
-    local_before = prior.residuals.xyz - reference.origin
-    radius = SURFACE_RADIUS_SPACINGS * reference.spacing
-    lidar = reference.points_near(np.vstack([local_after, local_before])[:, :2], radius)
-    if len(lidar) >= 50:
-        surface = LocalSurface(lidar, radius=radius)
-        dz_before = height_differences(local_before, surface)
-        dz_after = height_differences(local_after, surface)
-    else:
-        dz_before, dz_after = prior.residuals.dz_after, after.residuals.dz_after
-    residuals = PointResiduals.from_dz(after.residuals.xyz, dz_before, dz_after)
+    moving = open_points(given["moving"], format=inputs.get("moving_format")).read().xyz
+    after = evaluate(reference, moving, T_final)
+    prior = evaluate(reference, moving, T_before)
+    residuals = PointResiduals.from_dz(after.xyz, prior.dz, after.dz)
     control = ()
-    if data.get("confident") and after.reference is not None:
-        control = select_control_points(after.residuals.xyz - after.reference.origin,
-                                        after.reference, blunder=residuals.blunder,
+    if data.get("confident"):
+        control = select_control_points(after.xyz - reference.origin, reference,
+                                        blunder=residuals.blunder,
                                         sigma_xy=_sigma_xy(data.get("precision")))
-    return _write(data, residuals, control, Path(out_dir), crs_wkt=after.inputs.crs_wkt)
+    return _write(data, residuals, control, Path(out_dir), crs_wkt=source.info.crs_wkt)
 
 
 def _dz_grid(xy: np.ndarray, dz: np.ndarray, cell: float) -> tuple[np.ndarray, GridSpec] | None:

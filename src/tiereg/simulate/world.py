@@ -82,7 +82,8 @@ class World:
         return (self.x0, self.y0 - rows * self.cell, self.x0 + cols * self.cell, self.y0)
 
     def rowcol(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return (self.y0 - np.asarray(y)) / self.cell - 0.5, (np.asarray(x) - self.x0) / self.cell - 0.5
+        row = (self.y0 - np.asarray(y)) / self.cell - 0.5
+        return row, (np.asarray(x) - self.x0) / self.cell - 0.5
 
     def sample(self, name: str, x: np.ndarray, y: np.ndarray, *, order: int = 1) -> np.ndarray:
         """Bilinear (``order=1``) or nearest (``order=0``) values of a raster at positions."""
