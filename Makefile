@@ -22,7 +22,8 @@ demo: install
 test: install browser
 	$(BIN)/python -m pytest -q -n auto
 
-# the suite without the slow end-to-end cases, for quick checks while working
+# the fast tier: the suite without the slow end-to-end registrations (pytest marker `slow`),
+# about a minute on 2 cores; `make test` runs both tiers
 test-fast: install
 	$(BIN)/python -m pytest -q -n auto -m "not slow"
 

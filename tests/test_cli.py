@@ -39,6 +39,7 @@ def run(args, capsys):
     return code, out, err
 
 
+@pytest.mark.slow
 def test_register_writes_result_and_points(scene_files, tmp_path, capsys):
     d, scene = scene_files
     out = tmp_path / "RESULT.json"
@@ -111,6 +112,7 @@ def test_apply_to_a_dsm_moves_it(tmp_path, capsys):
         assert np.allclose(ds.read(1), values + 5.0)
 
 
+@pytest.mark.slow
 def test_demo(tmp_path, capsys):
     code, stdout, stderr = run(["demo", "--out", tmp_path], capsys)
     assert code == 0, stderr
@@ -268,6 +270,7 @@ def test_apply_keeps_the_crs_forward_and_drops_it_into_the_model_frame(tmp_path,
         assert (parsed is None) if crs is None else parsed.equals(crs)
 
 
+@pytest.mark.slow
 def test_apply_with_a_result_writes_the_reference_crs(tmp_path, capsys):
     """Tie points without a CRS, registered to lidar with one: applied with the RESULT.json they
     come out in the lidar's frame and say so; the lidar carried into the model's frame says

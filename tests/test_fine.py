@@ -88,6 +88,7 @@ def test_flat_ground_holds_the_horizontal_parameters():
     assert np.isnan(fit.sigma[PARAMETERS.index("tx")])
 
 
+@pytest.mark.slow
 def test_register_with_fine_reports_precision(tmp_path, scene_with_shift):
     from tiereg import register
 

@@ -72,6 +72,7 @@ def _rms(T_est, T_true, xyz):
     return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cameras", [True, False])
 def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     model = oriented_model(suburb, (55.0, -30.0, 140.0))
@@ -87,6 +88,7 @@ def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     assert data["T_initial"] is None
 
 
+@pytest.mark.slow
 def test_level_data_are_registered_as_they_are(suburb):
     # aerial-triangulation tie points are level already: the points as they are win, the points
     # turned over are tried too (a model may be upside down and level) and rejected
@@ -97,6 +99,7 @@ def test_level_data_are_registered_as_they_are(suburb):
     assert _rms(result.T_ref_mov, suburb.T_ref_mov, suburb.moving) < 10.0  # metres, coarse only
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cameras", [True, False])
 def test_a_model_upside_down_and_level_is_turned_over(suburb, tmp_path, cameras):
     # COLMAP's frame follows a camera's axes: a nadir block comes out upside down, within a few
@@ -110,6 +113,7 @@ def test_a_model_upside_down_and_level_is_turned_over(suburb, tmp_path, cameras)
     assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 10.0  # metres, coarse only
 
 
+@pytest.mark.slow
 def test_level_mountain_blocks_stay_level():
     # high relief tilts the dominant plane of level tie points by more than 15 degrees; the model
     # as it is must still be tried, and win

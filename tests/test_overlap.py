@@ -25,6 +25,7 @@ def _inside(poly_rings, xy):
                   axis=0)
 
 
+@pytest.mark.slow
 def test_overlap_outline_covers_the_block(lidar_xyz):
     ties = make_tie_points(lidar_xyz)
     result = check_overlap(ties, sample_lidar())
@@ -37,6 +38,7 @@ def test_overlap_outline_covers_the_block(lidar_xyz):
     assert 0.5 * np.prod(hi - lo) < result.area < 1.2 * np.prod(hi - lo)
 
 
+@pytest.mark.slow
 def test_tie_points_from_elsewhere_are_not_called_overlapping(lidar_xyz, tmp_path):
     # a block of another place: the lidar mirrored and shifted is a different surface
     rng = np.random.default_rng(3)
@@ -50,6 +52,7 @@ def test_tie_points_from_elsewhere_are_not_called_overlapping(lidar_xyz, tmp_pat
     assert data["confident"] is False and data["verdict"] == "no reliable overlap found"
 
 
+@pytest.mark.slow
 def test_overlap_command_writes_outline_and_picture(lidar_xyz, tmp_path, capsys):
     np.savetxt(tmp_path / "ties.xyz", make_tie_points(lidar_xyz))
     code = main(["overlap", str(tmp_path / "ties.xyz"), str(sample_lidar()), "--out",

@@ -23,7 +23,8 @@ def horizontal_error_cells(result, scene):
     return np.hypot(err[0], err[1]) / result.cell_size, err
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow),
+                                  pytest.param(2, marks=pytest.mark.slow)])
 def test_recovers_a_known_shift_at_projected_coordinates(seed):
     scene = make_scene(seed=seed, T_mov_ref=SHIFT, lidar_points=200_000,
                        block_offset=(100.0 * seed, -80.0 * seed))
@@ -36,6 +37,7 @@ def test_recovers_a_known_shift_at_projected_coordinates(seed):
     assert result.quality_before.n_used == 0  # 12 km off before registration: no overlap
 
 
+@pytest.mark.slow
 def test_demo_registers_the_colmap_model_as_the_truth_has_it(tmp_path):
     """The shipped COLMAP model (73 ft per model unit, upside down) onto the shipped lidar with
     no initial guess: within 2 deg and 2 % of the truth, 1.5 GSD RMS over its points (the
@@ -71,6 +73,7 @@ def test_translation_only_never_answers_rotation_or_scale_confidently(T_mov_ref)
     assert result.reasons
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "method"), [(0, "pomf"), (1, "auto")])
 def test_no_overlap_is_not_confident(seed, method):
     # tie points on terrain 1.6 km beyond the lidar's edge, and from another world entirely
@@ -80,6 +83,7 @@ def test_no_overlap_is_not_confident(seed, method):
     assert not register(other.tie_mov, outside.lidar, coarse=method).confident
 
 
+@pytest.mark.slow
 def test_reference_as_geotiff_dsm(tmp_path):
     scene = make_scene(seed=5, T_mov_ref=SHIFT, lidar_points=300_000)
     write_points(tmp_path / "lidar.laz", scene.lidar)
@@ -100,6 +104,7 @@ def test_json_writes_numbers_that_are_not_finite_as_null():
                                             "pair": [0.5, None]}
 
 
+@pytest.mark.slow
 def test_result_json_follows_the_contract():
     scene = make_scene(seed=6, T_mov_ref=SHIFT, lidar_points=100_000)
     data = json.loads(register(scene.tie_mov, scene.lidar).to_json())
@@ -136,6 +141,7 @@ def test_coarse_none_keeps_the_input_position():
     assert result.quality.n_used == len(scene.tie_mov)
 
 
+@pytest.mark.slow
 def test_a_starting_pose_the_fine_stage_cannot_confirm_is_not_confident():
     """With --coarse none only the fine stage vouches for the given pose: a pose within a cell
     of the truth is refined and confident; one it would have to move farther than the coarse
@@ -154,6 +160,7 @@ def test_a_starting_pose_the_fine_stage_cannot_confirm_is_not_confident():
             assert np.hypot(*err[0, :2]) < 0.1 * truth.cell_size
 
 
+@pytest.mark.slow
 def test_stray_points_far_outside_the_block_are_left_out_of_the_estimation():
     """A nodata height (-9999) and a point left at the origin among the tie points: the
     registration is that of the others, both are named in the warnings, and every row is still

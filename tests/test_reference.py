@@ -89,6 +89,7 @@ def test_noise_and_withheld_points_are_not_the_surface(tmp_path, version, point_
     assert len(kept) == len(ground) and np.all(kept[:, 2] == 100.0)
 
 
+@pytest.mark.slow
 def test_a_prepared_reference_serves_many_registrations():
     scene = make_scene(seed=8, T_mov_ref=Transform.from_translation((-3000.0, 700.0, 10.0)),
                        lidar_points=200_000)

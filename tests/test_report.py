@@ -28,6 +28,7 @@ def report(demo_result, tmp_path_factory):
     return write_report(demo_result, tmp_path_factory.mktemp("report"))
 
 
+@pytest.mark.slow
 def test_report_writes_maps_tables_and_a_self_contained_page(report, demo_result):
     out = report.directory
     for name in ("report.html", "dz_before.png", "dz_after.png", "residual_histogram.png",
@@ -110,6 +111,7 @@ def test_a_registration_that_failed_still_gets_its_report(demo_result, tmp_path)
     assert not (tmp_path / "coarse_correlation.png").exists()
 
 
+@pytest.mark.slow
 def test_register_report_option_and_report_command(tmp_path):
     ties = tmp_path / "ties.xyz"
     np.savetxt(ties, make_tie_points(open_points(sample_lidar()).read().xyz))

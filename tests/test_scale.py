@@ -97,6 +97,7 @@ def test_a_model_in_a_far_gauge_registers(suburb_world, model_per_metre):
     assert np.hypot(*err[0, :2]) < result.cell_size  # within a coarse cell (reference units)
 
 
+@pytest.mark.slow
 def test_a_block_too_small_for_the_reference_is_not_claimed(suburb_world):
     """A dense block a tenth of the reference's width, its tie cell under a 320th of it, cannot
     be told apart at the search's grid (at most MAX_REFERENCE_CELLS cells a side): the scales

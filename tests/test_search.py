@@ -24,6 +24,7 @@ def mountains():
     return spec, world, prepare_reference(ArraySource(PointSet(scene.lidar.xyz)), base_cell=5.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("heading, scale", [(0.0, 1.0), (137.0, 3.2808), (251.0, 0.4)],
                          ids=["level", "feet", "scale0.4"])
 def test_recovers_heading_scale_and_shift(mountains, heading, scale):
@@ -48,6 +49,7 @@ def test_recovers_heading_scale_and_shift(mountains, heading, scale):
     assert abs(err[0, 2]) < 10.0
 
 
+@pytest.mark.slow
 def test_tie_points_from_elsewhere_are_not_confident(mountains):
     spec, world, ref = mountains
     scene = make_scene(SceneSpec(kind="mountains", seed=3, tie_world_seed=77, **SMALL),
@@ -214,6 +216,7 @@ def test_spectral_orientation_of_stripes(angle_deg):
         assert o.anisotropy > anisotropy
 
 
+@pytest.mark.slow
 def test_moments_never_claims_what_it_cannot_explain():
     world = make_world("suburban", size_m=4000.0, seed=3)
     lidar = None
@@ -276,6 +279,7 @@ def test_what_stands_on_flat_ground_decides_where_the_heights_cannot(farmland):
     assert found["heights"][1] < 1.25  # which the heights alone do not give here
 
 
+@pytest.mark.slow
 def test_auto_registers_flat_farmland_by_what_stands_on_it(farmland):
     scene, ref = farmland
     result = register(scene.moving, ref, coarse="auto", fine="none")
@@ -518,6 +522,7 @@ def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_i
     assert all(map(same, (heights, objects), in_turn(near, sure)))
 
 
+@pytest.mark.slow
 def test_a_small_block_in_feet_is_found(small_block):
     from tiereg.coarse.search import small_block as is_small
     from tiereg.grid import cell_size_from_density

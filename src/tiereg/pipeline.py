@@ -398,7 +398,7 @@ def _register_from(moving: Moving, reference: PointsLike | PointSource | Referen
     return RegistrationResult(
         T_ref_mov=frames.to_world(polished.T_local),
         confident=bool(polished.confident),
-        confidence=float(start.confidence),
+        confidence=float(polished.confidence),
         coarse=start.result,
         fine=None if polished.result is None else replace(polished.result, lidar=None),
         quality_before=start.before,

@@ -184,6 +184,7 @@ class FineStage:
     T_local: Transform
     result: FineResult | None
     confident: bool
+    confidence: float  # the coarse stage's, at most 0.49 once the fine stage withdraws it
     reasons: tuple[str, ...] = ()  # added to the coarse stage's
     warnings: tuple[str, ...] = ()
     note: str = ""  # why it did not run
@@ -195,10 +196,10 @@ def fine_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start: C
     ``method`` is ``"none"`` or no pose explains the heights; a refusal costs the confidence
     unless the verdict's refined fit vouches for the coarse pose."""
     if method == "none":
-        return FineStage(start.T_local, None, start.confident,
+        return FineStage(start.T_local, None, start.confident, start.confidence,
                          note="not asked for (`fine` none)")
     if start.hopeless:
-        return FineStage(start.T_local, None, start.confident,
+        return FineStage(start.T_local, None, start.confident, start.confidence,
                          note="skipped: no pose found explains the tie points' heights")
     result = register_fine(start.T_local.apply(mov_local[keep]), ref, cell_size=start.cell_size,
                            method="lsm" if method == "auto" else method)
@@ -222,7 +223,8 @@ def fine_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start: C
     if result.held and not result.refused:
         warnings.append(f"the data do not determine {', '.join(result.held)} (flat or "
                         "featureless ground): held at the coarse answer")
-    return FineStage(T_local, result, confident, tuple(reasons), tuple(warnings))
+    confidence = start.confidence if confident else min(start.confidence, 0.49)
+    return FineStage(T_local, result, confident, confidence, tuple(reasons), tuple(warnings))
 
 
 def _refusal_reason(result: FineResult, coarse_method: str) -> str:
