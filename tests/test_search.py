@@ -169,8 +169,8 @@ def test_a_fit_is_reused_only_for_a_hypothesis_that_starts_the_same(mountains):
     import math
     from dataclasses import replace
 
-    from tiereg.coarse.search import search
     from tiereg.coarse.judge import FitCache, judge
+    from tiereg.coarse.search import search
 
     spec, world, ref = mountains
     hidden = HiddenTransform(heading_deg=40.0, scale=2.0, model_origin=(0.0, 0.0, 0.0))
@@ -358,8 +358,8 @@ def test_a_leaning_block_is_explained_once_its_tilt_is_free(small_block):
 
 
 def test_choose_takes_the_pose_the_heights_confirm_over_a_better_correlation(small_block):
-    from tiereg.coarse.search import HeightCheck, choose
     from tiereg.coarse.judge import rival_ratio
+    from tiereg.coarse.search import HeightCheck, choose
     from tiereg.surface import SurfaceSampler
 
     scene, ref = small_block
@@ -380,8 +380,8 @@ def test_choose_takes_the_pose_the_heights_confirm_over_a_better_correlation(sma
 def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(small_block):
     from dataclasses import replace
 
-    from tiereg.coarse.search import SearchResult
     from tiereg.coarse.judge import FitCache
+    from tiereg.coarse.search import SearchResult
     from tiereg.coarse.similarity import judge_choice
 
     scene, ref = small_block
@@ -400,12 +400,12 @@ def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(smal
 
 def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
     """Between two answers neither sure of, the pose returned speaks, not a fit that was not
-    taken (:func:`~tiereg.coarse.similarity._explains_better`)."""
+    taken (:func:`~tiereg.coarse.similarity.explains_better`)."""
     from dataclasses import replace
 
-    from tiereg.coarse.search import HeightCheck, SearchResult
     from tiereg.coarse.judge import FitCache, judge
-    from tiereg.coarse.similarity import _explains_better
+    from tiereg.coarse.search import HeightCheck, SearchResult
+    from tiereg.coarse.similarity import explains_better
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)
@@ -424,12 +424,12 @@ def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
     # then the grid's pose speaks: its heights are unrelated to the surface's (about sqrt 2)
     grid_ratio = HeightCheck(fits.sampler).residual_ratio(moving, wrong)
     assert bad.details["pose_residual_ratio"] == pytest.approx(grid_ratio) and grid_ratio > 0.8
-    assert _explains_better(good, bad) and not _explains_better(bad, good)
+    assert explains_better(good, bad) and not explains_better(bad, good)
     # however small the residuals of a fit that settled but was not taken (it disagreed with
     # its search), they do not speak for the pose returned
     untaken = replace(bad, details={**bad.details, "residual_ratio": 0.01, "refinement": {
         **bad.details["refinement"], "settled": True}})
-    assert not _explains_better(untaken, good)
+    assert not explains_better(untaken, good)
 
 
 def test_the_checks_that_need_no_fit_rule_out_only_what_the_judge_refuses(small_block):
@@ -438,9 +438,9 @@ def test_the_checks_that_need_no_fit_rule_out_only_what_the_judge_refuses(small_
     rival that could not be explained; not a close rival that the heights may explain."""
     from dataclasses import replace
 
+    from tiereg.coarse.judge import TRUST, FitCache, judge, may_be_confident
     from tiereg.coarse.scoring import MIN_OVERLAP
     from tiereg.coarse.search import SearchResult
-    from tiereg.coarse.judge import TRUST, FitCache, judge, may_be_confident
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)
@@ -475,10 +475,10 @@ def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_i
     import math
     from dataclasses import replace
 
+    from tiereg.coarse.judge import FitCache
     from tiereg.coarse.scoring import OBJECTS
     from tiereg.coarse.search import SearchResult
-    from tiereg.coarse.judge import FitCache
-    from tiereg.coarse.similarity import _judged_by_turns, judge_choice
+    from tiereg.coarse.similarity import judge_choice, judged_by_turns
 
     scene, ref = small_block
     moving, true = _local_truth(scene, ref)
@@ -491,7 +491,7 @@ def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_i
 
     def by_turns(heights, objects):
         fits = FitCache.of(ref)
-        return (*_judged_by_turns(moving, heights, objects, None, {**options, "fits": fits}),
+        return (*judged_by_turns(moving, heights, objects, None, {**options, "fits": fits}),
                 len(fits.fits))
 
     def in_turn(heights, objects):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tiereg.transform import Transform
-from tiereg.verdict import MAX_UNEXPLAINED, NOISE_MULTIPLE, RefinedPose, _judged
+from tiereg.verdict import MAX_UNEXPLAINED, NOISE_MULTIPLE, RefinedPose, verdict_of
 
 
 def _pose(dz_spread_m: float, *, n: int = 800, on: float = 1.0, seed: int = 0) -> RefinedPose:
@@ -21,7 +21,7 @@ def _pose(dz_spread_m: float, *, n: int = 800, on: float = 1.0, seed: int = 0) -
 
 def test_an_answer_that_explains_its_heights_and_stands_out_is_confident():
     poses = (_pose(1.0), _pose(8.0, seed=1))
-    verdict = _judged(poses, 0, (700.0, 200.0), (np.nan, 9.0), poses[0].unexplained)
+    verdict = verdict_of(poses, 0, (700.0, 200.0), (np.nan, 9.0), poses[0].unexplained)
     assert verdict.confident and not verdict.reasons
     assert verdict.confidence > 0.5
 
@@ -33,13 +33,13 @@ def test_an_answer_far_looser_than_another_pose_is_not_confident():
     assert 0.2 < loose.unexplained < MAX_UNEXPLAINED  # it would pass on its own
     noise = tight.unexplained
     assert loose.unexplained > NOISE_MULTIPLE * noise
-    verdict = _judged((tight, loose), 1, (100.0, 600.0), (9.0, np.nan), noise)
+    verdict = verdict_of((tight, loose), 1, (100.0, 600.0), (9.0, np.nan), noise)
     assert not verdict.confident and verdict.confidence < 0.5
     assert len(verdict.reasons) == 1 and "far more tightly" in verdict.reasons[0]
 
 
 def test_an_answer_that_leaves_much_of_the_relief_unexplained_is_not_confident():
     poses = (_pose(12.0), _pose(20.0, seed=1))  # 0.4 of the relief's spread left
-    verdict = _judged(poses, 0, (500.0, 100.0), (np.nan, 9.0), poses[0].unexplained)
+    verdict = verdict_of(poses, 0, (500.0, 100.0), (np.nan, 9.0), poses[0].unexplained)
     assert poses[0].unexplained > MAX_UNEXPLAINED and not verdict.confident
     assert any("disagree with the reference surface" in r for r in verdict.reasons)

@@ -203,7 +203,7 @@ def decide(moving: np.ndarray, reference: Reference, starts: list[Transform], *,
     best = max(eligible, key=lambda i: (counts[i], -poses[i].unexplained))
     z = tuple(math.nan if j == best else
               _mcnemar(hits[best], hits[j], weights[best], weights[j]) for j in range(len(poses)))
-    return _judged(poses, best, counts, z, noise)
+    return verdict_of(poses, best, counts, z, noise)
 
 
 def _independence(xyz: np.ndarray, cell: float) -> np.ndarray:
@@ -231,8 +231,11 @@ def _mcnemar(a: np.ndarray, b: np.ndarray, w_a: np.ndarray, w_b: np.ndarray) -> 
     return (only_a - only_b) / math.sqrt(only_a + only_b) if only_a + only_b > 0 else 0.0
 
 
-def _judged(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, ...],
-            z: tuple[float, ...], noise: float) -> Verdict:
+def verdict_of(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, ...],
+               z: tuple[float, ...], noise: float) -> Verdict:
+    """The verdict on refined ``poses`` with ``best`` the answer: ``counts`` the tie points
+    each explains (weighted), ``z`` the answer's McNemar z against each (NaN for itself),
+    ``noise`` the tightest fit's share of the relief (the module docstring's rules)."""
     chosen = poses[best]
     rivals = [v for v in z if not math.isnan(v)]
     z_min = min(rivals) if rivals else math.nan

@@ -12,7 +12,7 @@
    ground (:data:`~tiereg.coarse.scoring.OBJECTS`), judged by thresholds of its own
    (:data:`~tiereg.coarse.judge.TRUST`). Where the checks that need no fit already rule out the
    heights' answer (:func:`~tiereg.coarse.judge.may_be_confident`), it is judged only if the
-   objects' answer is not confident (:func:`_judged_by_turns`).
+   objects' answer is not confident (:func:`judged_by_turns`).
 """
 
 from __future__ import annotations
@@ -169,7 +169,7 @@ def register_similarity(
     options = {"method": method, "tie_cell": tie_cell, "extra": extra, "fits": fits}
     # where the checks that need no fit already rule out a confident answer from the heights,
     # what stands on the ground is searched first, and the heights' answer is judged only if
-    # it is still needed (:func:`_judged_by_turns`): on the 95 large blocks of the coarse
+    # it is still needed (:func:`judged_by_turns`): on the 95 large blocks of the coarse
     # benchmark's timing, all 37 whose heights were not confident were ruled out so
     heights_decide = method != "search" or may_be_confident(found, TRUST[HEIGHTS.name])
     result = judge_choice(moving_xyz, found, **options) if heights_decide else None
@@ -234,7 +234,7 @@ def _objects_too(moving_xyz: np.ndarray, reference: Reference, found: SearchResu
     except NoOverlap:
         objects = None
     t_searched = time.perf_counter()
-    result, second = _judged_by_turns(moving_xyz, found, objects, result, options)
+    result, second = judged_by_turns(moving_xyz, found, objects, result, options)
     timings["judge"] = result.seconds
     if second is None:
         return result
@@ -243,7 +243,7 @@ def _objects_too(moving_xyz: np.ndarray, reference: Reference, found: SearchResu
     # none; on the simulated farmland what stands on the ground often finds the truth
     # without a peak distinct enough to be sure)
     timings["objects"] = t_searched - t_objects + second.seconds
-    take = second.confident or (not result.confident and _explains_better(second, result))
+    take = second.confident or (not result.confident and explains_better(second, result))
     result, other = (second, result) if take else (result, second)
     return replace(result, hypotheses=result.hypotheses + other.hypotheses, details={
         **result.details, "other_channel": {**other.details, "confident": other.confident,
@@ -261,7 +261,7 @@ def no_overlap_reason(scales: ScaleRange) -> str:
             f"per model unit) makes the tie points overlap the reference by {MIN_OVERLAP:.0%}")
 
 
-def _judged_by_turns(
+def judged_by_turns(
     moving_xyz: np.ndarray,
     heights: SearchResult,
     objects: SearchResult | None,
@@ -325,12 +325,12 @@ def judge_choice(moving_xyz: np.ndarray, found: SearchResult, **options) -> Coar
     if found.alternative is None:
         return result
     other = judge(moving_xyz, found.alternative, **options)
-    if (other.confident, _explains_better(other, result)) > (result.confident, False):
+    if (other.confident, explains_better(other, result)) > (result.confident, False):
         return other
     return result
 
 
-def _explains_better(a: CoarseResult, b: CoarseResult) -> bool:
+def explains_better(a: CoarseResult, b: CoarseResult) -> bool:
     """Whether the pose ``a`` returns leaves smaller height residuals than the pose ``b`` returns
     (``pose_residual_ratio``: its continuous fit's where the fit was taken, else the search's).
 
