@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import laspy
 import numpy as np
 import pytest
 from scenes import make_scene
 
-from tiereg import Transform, register
+from tiereg import Reference, Transform, register
 from tiereg.grid import GridSpec, rasterize
 from tiereg.io import open_points
 from tiereg.io.base import ArraySource
@@ -102,3 +104,13 @@ def test_a_prepared_reference_serves_many_registrations():
         c = moving.mean(axis=0, keepdims=True)
         err = result.T_ref_mov.apply(c) - truth.apply(c)
         assert result.confident and np.hypot(*err[0, :2]) < 0.1 * result.cell_size
+
+
+def test_reference_open_grids_the_file_once_as_prepare_reference_does():
+    path = Path(__file__).parent / "data" / "autzen-bmx-2010.las"
+    ref = Reference.open(str(path))
+    same = prepare_reference(open_points(str(path)))
+    assert ref.source_args == (str(path.resolve()),)  # where it came from, for RESULT.json
+    assert np.array_equal(ref.origin, same.origin)
+    assert ref.base_cell == same.base_cell
+    assert np.array_equal(ref.base["mean"], same.base["mean"], equal_nan=True)

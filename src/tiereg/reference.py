@@ -13,9 +13,10 @@ when the file records returns; points classed as noise or withheld are left out.
 from __future__ import annotations
 
 import math
+import os
 import threading
-from collections.abc import Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -51,6 +52,21 @@ class Reference:
     # the coarse stage's threads ask for grids side by side
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
     source_args: tuple[str, ...] = ()  # the paths it was read from, when known
+
+    @classmethod
+    def open(cls, paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], *,
+             format: str | None = None, base_cell: float | None = None,
+             progress: ProgressFactory | None = None) -> Reference:
+        """The reference at ``paths`` (a LAS/LAZ/COPC file, several tiles, a folder or a glob
+        of them, or a GeoTIFF DSM) read and gridded once (:func:`prepare_reference`): given to
+        :func:`tiereg.register`, :func:`tiereg.evaluate` or ``check_overlap`` in place of the
+        paths, it serves many blocks without reading the lidar again."""
+        from .io import open_points
+
+        ref = prepare_reference(open_points(paths, format=format), base_cell=base_cell,
+                                progress=progress)
+        given = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+        return replace(ref, source_args=tuple(os.path.abspath(os.fspath(p)) for p in given))
 
     @property
     def base_cell(self) -> float:
