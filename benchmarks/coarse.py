@@ -509,7 +509,7 @@ def write_timing(outcomes: list[Outcome], meta: dict, path: Path, seconds: float
         "- each case is `tiereg.overlap.check_overlap` (`tiereg overlap`): the coarse stage "
         "(`auto`), then the tie points' share on the lidar and the overlap's outline; `correct` "
         "as in `coarse.md`",
-        "- scenes at the scale of the original method's tests: " + ", ".join(
+        "- the coarse benchmark's simulated scenes: " + ", ".join(
             f"{k} ({v['tie_points']} tie points, cell {v['cell']:g} m)"
             for k, v in meta["scenes"].items()),
         "- the cases of `coarse.md` (the same seeds), negative cases included",

@@ -79,7 +79,7 @@ def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     folder = model.write_colmap(tmp_path / "sparse", cameras=cameras)
     result = register(folder, suburb.lidar.xyz)
     assert result.confident
-    assert result.levelling["source"] == ("cameras" if cameras else "points")
+    assert result.levelling.source == ("cameras" if cameras else "points")
     assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 0.5  # metres, after fine
     data = json.loads(result.to_json())
     assert data["levelling"]["tilt_deg"] > 40
@@ -94,8 +94,8 @@ def test_level_data_are_registered_as_they_are(suburb):
     # turned over are tried too (a model may be upside down and level) and rejected
     result = register(suburb.moving, suburb.lidar.xyz, fine="none")
     assert result.confident
-    assert result.levelling["chosen"] == "as is" and result.levelling["tried"] == 2
-    assert result.levelling["confident_answers"] == 1
+    assert result.levelling.chosen == "as is" and result.levelling.tried == 2
+    assert result.levelling.confident_answers == 1
     assert _rms(result.T_ref_mov, suburb.T_ref_mov, suburb.moving) < 10.0  # metres, coarse only
 
 
@@ -108,8 +108,8 @@ def test_a_model_upside_down_and_level_is_turned_over(suburb, tmp_path, cameras)
     folder = model.write_colmap(tmp_path / "sparse", cameras=cameras)
     result = register(folder, suburb.lidar.xyz, fine="none")
     assert result.confident, result.reasons
-    assert result.levelling["source"] == ("cameras" if cameras else "points")
-    assert result.levelling["chosen"] == ("up" if cameras else "down")
+    assert result.levelling.source == ("cameras" if cameras else "points")
+    assert result.levelling.chosen == ("up" if cameras else "down")
     assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 10.0  # metres, coarse only
 
 
@@ -125,6 +125,6 @@ def test_level_mountain_blocks_stay_level():
     scene = make_scene(spec)
     assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 15  # the premise
     result = register(scene.moving, scene.lidar.xyz, fine="none")
-    assert result.confident and result.levelling["tried"] == 3  # as it is, up, down
-    assert result.levelling["chosen"] == "as is"
+    assert result.confident and result.levelling.tried == 3  # as it is, up, down
+    assert result.levelling.chosen == "as is"
     assert _rms(result.T_ref_mov, scene.T_ref_mov, scene.moving) < 5.0  # metres, coarse only

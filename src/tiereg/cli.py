@@ -134,8 +134,8 @@ def _cmd_register(args: argparse.Namespace) -> int:
         print(_summary(result))
         if result.levelling:
             lv = result.levelling
-            print(f"levelled:    the model was tilted by {lv['tilt_deg']:.1f} deg (vertical from "
-                  f"its {lv['source']})")
+            print(f"levelled:    the model was tilted by {lv.tilt_deg:.1f} deg (vertical from "
+                  f"its {lv.source})")
         print(f"result:      {out}")
         if report is not None:
             print(_report_line(report))

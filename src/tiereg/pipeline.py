@@ -73,6 +73,26 @@ class Inputs:
 
 
 @dataclass(frozen=True)
+class Levelling:
+    """How a model in any orientation was levelled before it was registered: its vertical
+    (:class:`~tiereg.level.Vertical`), the starting orientations tried and the one chosen."""
+
+    source: str  # "cameras" or "points": what gave the vertical
+    up: tuple[float, float, float]  # the vertical in the model frame
+    tilt_deg: float
+    sign_known: bool  # cameras tell up from down; a plane does not
+    flatness: float
+    tried: int  # orientations registered
+    confident_answers: int  # of them, those registered confidently
+    chosen: str  # the orientation whose answer is the registration's
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source, "up": list(self.up), "tilt_deg": self.tilt_deg,
+                "sign_known": self.sign_known, "flatness": self.flatness, "tried": self.tried,
+                "confident_answers": self.confident_answers, "chosen": self.chosen}
+
+
+@dataclass(frozen=True)
 class RegistrationResult:
     """Everything a registration found; ``to_dict()`` is RESULT.json."""
 
@@ -94,7 +114,7 @@ class RegistrationResult:
     # the prepared reference (its base grid): for reports and control points, and to register
     # more blocks against the same lidar without reading it again
     reference: Reference | None = field(default=None, repr=False, compare=False)
-    levelling: dict[str, Any] | None = None  # how a model in any orientation was levelled
+    levelling: Levelling | None = None  # how a model in any orientation was levelled
     reference_seconds: float = 0.0  # of ``seconds``: reading and gridding the reference
     verdict: Verdict | None = None  # the refined fits of the coarse answer and its rivals
 
@@ -132,7 +152,7 @@ class RegistrationResult:
             "quality_before": self.quality_before.to_dict(),
             "inputs": self.inputs.to_dict(),
             "T_initial": None if self.T_initial is None else self.T_initial.matrix.tolist(),
-            "levelling": self.levelling,
+            "levelling": None if self.levelling is None else self.levelling.to_dict(),
             "exports": {
                 "pdal_filters_transformation_matrix": self.T_ref_mov.to_pdal(),
                 "cloudcompare_matrix": self.T_ref_mov.to_cloudcompare().splitlines(),
@@ -210,10 +230,9 @@ def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
     if rivals:
         reasons.append("two orientations of the vertical register confidently: the answer is "
                        "ambiguous")
-    info = {"source": vertical.source, "up": list(vertical.up), "tilt_deg": vertical.tilt_deg,
-            "sign_known": vertical.sign_known, "flatness": vertical.flatness,
-            "tried": len(results), "confident_answers": sum(r.confident for r in results),
-            "chosen": poses[results.index(best)].name}
+    info = Levelling(vertical.source, tuple(vertical.up), vertical.tilt_deg, vertical.sign_known,
+                     vertical.flatness, len(results), sum(r.confident for r in results),
+                     poses[results.index(best)].name)
     confident = best.confident and not rivals
     return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
                    confidence=best.confidence if confident else min(best.confidence, 0.49),
