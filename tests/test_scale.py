@@ -138,3 +138,22 @@ def test_an_answer_at_the_smallest_scale_searched_is_searched_again_with_a_coars
     narrow = 640.0 / (2 * MIN_TIE_SIDE - 1)
     edge = ScaleRange.of(moving, ref, narrow).lowest
     assert coarser_tie_cell(edge * 1.05, moving, ref, narrow) is None
+
+
+def test_a_translation_search_coarsens_its_own_cell_and_refuses_a_given_one_too_fine():
+    """`coarse` pomf on a dense block over a wide lidar: the tie cell (1 m) would grid the
+    2 km reference at 2,000 cells a side; unasked, the grid is coarsened to the bound (320 a
+    side); a `cell_size` that fine given by the caller is refused, naming the parameter."""
+    from tiereg.errors import InputError
+    from tiereg.stages import translation_grid
+
+    ref = _reference(2000.0, n=400_000)  # base cell about 4 m
+    block = np.column_stack([np.random.default_rng(1).uniform(0, 200, (500, 2)), np.zeros(500)])
+    grid = translation_grid(ref, block, cell_size=None, tie_cell=1.0)
+    least = 2000.0 / MAX_REFERENCE_CELLS
+    assert least <= grid.spec.cell_size < least + ref.base_cell  # whole base cells
+    assert max(grid.spec.shape) <= MAX_REFERENCE_CELLS + 2
+    given = translation_grid(ref, block, cell_size=12.0, tie_cell=1.0).spec.cell_size
+    assert abs(given - 12.0) <= ref.base_cell / 2
+    with pytest.raises(InputError, match="cell_size 1 is too fine"):
+        translation_grid(ref, block, cell_size=1.0, tie_cell=1.0)

@@ -82,19 +82,25 @@ class CoarseStage:
         return self.result is not None and not self.confident
 
 
-def translation_grid(ref: Reference, cell_size: float, moving: np.ndarray):
-    """The reference grid a translation-only search correlates (``cell_size``: reference units),
-    refused where it or the tie points' grid on its lattice would exceed
+def translation_grid(ref: Reference, moving: np.ndarray, *, cell_size: float | None,
+                     tie_cell: float):
+    """The reference grid a translation-only search correlates, at ``cell_size`` (reference
+    units) where given, else at the tie cell, coarsened where either would exceed
     :data:`~tiereg.coarse.scoring.MAX_REFERENCE_CELLS` or
-    :data:`~tiereg.coarse.scoring.MAX_TIE_SIDE` cells a side."""
+    :data:`~tiereg.coarse.scoring.MAX_TIE_SIDE` cells a side; a given ``cell_size`` that fine is
+    refused."""
     (x0, y0, x1, y1) = ref.base.spec.bounds
     extent = np.ptp(moving[:, :2], axis=0).max()
     least = max(max(x1 - x0, y1 - y0) / MAX_REFERENCE_CELLS, extent / MAX_TIE_SIDE)
-    if cell_size < least:
+    if cell_size is not None and cell_size < least:
         raise InputError(f"cell_size {cell_size:g} is too fine for a translation-only search of "
                          f"this reference and block; give cell_size of at least {least:.3g} "
                          "(reference units), or let the coarse stage find the scale too")
-    return ref.grid(cell_size)
+    if cell_size is None and tie_cell < least:  # a whole number of base cells, not below
+        least = ref.base_cell * math.ceil(least / ref.base_cell - 1e-9)
+        log.info("translation search: tie cell %.4g -> %.4g (grid size bound)", tie_cell, least)
+        cell_size = least
+    return ref.grid(cell_size if cell_size is not None else tie_cell)
 
 
 def coarser_tie_cell(scale: float, moving: np.ndarray, ref: Reference,
@@ -144,7 +150,7 @@ def coarse_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, frames
     peaks; else a similarity, judged by the refined fits of the answer and its rivals,
     :func:`~tiereg.verdict.judge_refined`)."""
     if method == "pomf":  # level data at the reference's scale: a cell in its units
-        grid = translation_grid(ref, cell_size or tie_cell, mov_local[keep])
+        grid = translation_grid(ref, mov_local[keep], cell_size=cell_size, tie_cell=tie_cell)
         result = register_translation(mov_local[keep], grid, reference_fine=ref.base)
     else:  # search, auto and the Fourier-Mellin forms
         result, tie_cell = similarity_search(mov_local[keep], ref, tie_cell=tie_cell,
