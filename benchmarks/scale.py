@@ -90,6 +90,31 @@ def grid_run(paths: list[str], workers: int, base_cell: float) -> dict:
             "peak_rss_mb_per_worker": sorted(peak.values()), "load": os.getloadavg()[0]}
 
 
+def task_cpu(paths: list[str], base_cell: float, repeats: int = 3) -> dict:
+    """CPU seconds of decoding ``paths`` (:func:`_decode_tile`) against gridding them as the
+    cluster's tasks do (:func:`tiereg.distributed.grid_tile`), both in this process, one tile
+    after the other, interleaved ``repeats`` times; the least of each (what another user's
+    load adds least to)."""
+    from tiereg.archive import TileIndex
+    from tiereg.distributed import grid_tile
+    from tiereg.reference import reference_spec
+
+    index = TileIndex.build(paths)
+    origin, spec = reference_spec(*(np.asarray(b, dtype=np.float64) for b in index.bounds),
+                                  base_cell)
+    decode, grid = [], []
+    for _ in range(repeats):
+        decode.append(sum(_decode_tile(p)[1] for p in paths))
+        t = time.process_time()
+        for i, tile in enumerate(index.tiles):
+            grid_tile(tile, spec, stats=("mean",), origin=origin, surface=True, first_only=True,
+                      median_sample=15, seed=i)
+        grid.append(time.process_time() - t)
+    return {"tiles": len(paths), "points": index.count, "decode_cpu_s": min(decode),
+            "grid_task_cpu_s": min(grid), "ratio": min(grid) / min(decode),
+            "repeats": repeats, "load": os.getloadavg()[0]}
+
+
 def scheduler_overhead(workers: int, n: int = 2000) -> dict:
     from tiereg.distributed import cluster
 
@@ -117,6 +142,7 @@ def phase_grid(args, out: dict) -> None:
         "grid_50M_2w": lambda: grid_run(part, 2, base),
         "decode_50M_2proc": lambda: decode_baseline(part, 2),
         "scheduler": lambda: scheduler_overhead(2),
+        "task_cpu_16_tiles": lambda: task_cpu(paths[:16], base),
     }
     for name in args.runs or list(runs):
         g[name] = runs[name]()
@@ -188,7 +214,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[2], help="mosaic phase")
     ap.add_argument("--blocks", choices=("dev", "held-out", "all"), default="all")
     ap.add_argument("--runs", nargs="+", help="grid phase: these runs only (decode_all_2proc, "
-                    "grid_all_2w, grid_all_1w, grid_50M_2w, decode_50M_2proc, scheduler)")
+                    "grid_all_2w, grid_all_1w, grid_50M_2w, decode_50M_2proc, scheduler, "
+                    "task_cpu_16_tiles)")
     args = ap.parse_args()
     import scale_data
 

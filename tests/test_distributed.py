@@ -98,3 +98,22 @@ def test_tiles_without_returns_are_gridded_as_prepare_reference_grids_them(tmp_p
 def test_workers_and_scheduler_together_are_refused():
     with pytest.raises(InputError, match="not both"), cluster(workers=2, scheduler="tcp://x:1"):
         pass
+
+
+def test_a_tile_whose_header_understates_its_bounds_is_refused(tiles):
+    """A tile's task grids only its header's window: points beyond it (a wrong header) would
+    be lost silently, so the task refuses the tile, naming it."""
+    from dataclasses import replace
+
+    from tiereg.distributed import grid_tile
+    from tiereg.grid import GridSpec
+
+    tile = TileIndex.build(tiles).tiles[0]
+    spec = GridSpec(ORIGIN[0] - 1000.0, ORIGIN[1] + 1000.0, 10.0, (200, 200))  # all tiles
+    whole = grid_tile(tile, spec, stats=("mean",), origin=None, surface=True, first_only=True,
+                      median_sample=15, seed=0)
+    assert whole.points > 0
+    shrunk = replace(tile, maxs=(tile.mins[0] + 100.0, *tile.maxs[1:]))  # 100 m of 500
+    with pytest.raises(InputError, match="outside the tile's header bounds"):
+        grid_tile(shrunk, spec, stats=("mean",), origin=None, surface=True, first_only=True,
+                  median_sample=15, seed=0)

@@ -139,6 +139,28 @@ def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = Non
                           "corrupt or truncated - re-export or re-download it") from None
 
 
+def tile_columns(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = None,
+                 chunk_size: int = DEFAULT_CHUNK,
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]:
+    """All the points of one tile as ``(x, y, z, kept)`` columns, chunk by chunk as
+    :func:`tile_chunks` reads them (fresh arrays: change them in place); ``kept``: what ``keep``
+    keeps (None without), left to the caller to apply with its own selection."""
+    import laspy
+
+    path = Path(tile.path)
+    try:
+        with laspy.open(path, mode="r", laz_backend=_one_thread_backend(),
+                        decompression_selection=_selection()) as reader:
+            for records in reader.chunk_iterator(chunk_size):
+                kept = None if keep is None else np.asarray(keep(records), dtype=bool)
+                yield (np.asarray(records.x, dtype=np.float64),
+                       np.asarray(records.y, dtype=np.float64),
+                       np.asarray(records.z, dtype=np.float64), kept)
+    except read_errors() as exc:
+        raise FormatError(f"{path}: reading the points failed ({short_error(exc)}); the file is "
+                          "corrupt or truncated - re-export or re-download it") from None
+
+
 def _filtered(chunks, keep, box: Box | None) -> Iterator[np.ndarray]:
     for records in chunks:
         xyz = _xyz(records)

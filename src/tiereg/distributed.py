@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .archive import Tile, TileIndex, tile_chunks
+from .archive import Tile, TileIndex, tile_columns
 from .errors import InputError, MissingDependencyError
 from .grid import Grid, GridAccumulator, GridSpec, median_sample_for, nice_size
 from .progress import ProgressFactory, no_progress
@@ -109,23 +109,22 @@ def grid_tile(tile: Tile, spec: GridSpec, *, stats: Sequence[str], origin: np.nd
     :func:`~tiereg.archive.surface_mask` keeps."""
     window = tile_window(spec, tile, origin)
     r0, r1, c0, c1 = window or (0, 1, 0, 1)
-    c = spec.cell_size
-    wspec = GridSpec(spec.x0 + c0 * c, spec.y0 - r0 * c, c, (r1 - r0, c1 - c0))
+    c, width = spec.cell_size, c1 - c0
+    wspec = GridSpec(spec.x0 + c0 * c, spec.y0 - r0 * c, c, (r1 - r0, width))
     acc = GridAccumulator(wspec, stats=stats, median_sample=median_sample, seed=seed)
     keep = (lambda r: surface_mask(r, first_only)) if surface else None
-    cols, lost = spec.shape[1], 0
-    for xyz in tile_chunks(tile, keep=keep):  # a fresh array: changed in place
+    lost = 0
+    for x, y, z, kept in tile_columns(tile, keep=keep):
         if origin is not None:
-            xyz -= origin
-        idx, inside = spec.cell_index(xyz[:, 0], xyz[:, 1])  # the whole grid's arithmetic
-        row, col = np.divmod(idx, cols)
+            x -= origin[0]
+            y -= origin[1]
+            z -= origin[2]
+        row, col, inside = spec.cell_rowcol(x, y)  # the whole grid's arithmetic
+        if kept is not None:
+            inside &= kept
         ok = inside & (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
-        lost += int((inside & ~ok).sum())
-        # each point at its cell's centre in the window: the window finds the same cell
-        xyz = xyz[ok]
-        xyz[:, 0] = wspec.x0 + (col[ok] - c0 + 0.5) * c
-        xyz[:, 1] = wspec.y0 - (row[ok] - r0 + 0.5) * c
-        acc.add(xyz)
+        lost += int(np.count_nonzero(inside)) - int(np.count_nonzero(ok))
+        acc.add_cells((row[ok] - r0) * width + (col[ok] - c0), z[ok])
     if lost:
         raise InputError(f"{tile.path}: {lost} points lie outside the tile's header bounds; the "
                          "header is wrong - re-export the tile")

@@ -92,15 +92,22 @@ class GridSpec:
         c = self.cell_size
         return (self.y0 - np.asarray(y)) / c - 0.5, (np.asarray(x) - self.x0) / c - 0.5
 
-    def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat cell index of each position and whether it falls inside the grid."""
+    def cell_rowcol(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                 np.ndarray]:
+        """Integer (row, col) of the cell holding each position and whether it falls inside
+        the grid (outside, the row and column are meaningless)."""
         inv = 1.0 / self.cell_size
         col = (np.asarray(x) - self.x0) * inv
         row = (self.y0 - np.asarray(y)) * inv
         inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
-        # truncation equals floor for the non-negative values inside; outside cells get 0
-        idx = row.astype(np.int64) * self.shape[1] + col.astype(np.int64)
-        idx[~inside] = 0
+        # truncation equals floor for the non-negative values inside
+        return row.astype(np.int64), col.astype(np.int64), inside
+
+    def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flat cell index of each position and whether it falls inside the grid."""
+        row, col, inside = self.cell_rowcol(x, y)
+        idx = row * self.shape[1] + col
+        idx[~inside] = 0  # outside cells get 0
         return idx, inside
 
 
@@ -175,6 +182,16 @@ class GridAccumulator:
             idx, z = idx[inside], xyz[inside, 2]
         else:
             z = xyz[:, 2]
+        self._add_cells(idx, z)
+
+    def add_cells(self, idx: np.ndarray, z: np.ndarray, *, seen: int | None = None) -> None:
+        """Add heights ``z`` at flat cell indices ``idx`` found by the caller (each inside the
+        grid, each ``z`` finite); ``seen``: the points the chunk held before the caller's
+        selection (default ``len(z)``)."""
+        self.points_seen += len(z) if seen is None else seen
+        self._add_cells(np.asarray(idx, dtype=np.int64), np.asarray(z, dtype=np.float64))
+
+    def _add_cells(self, idx: np.ndarray, z: np.ndarray) -> None:
         if len(idx) == 0:
             return
         # count over the chunk's own index range: a chunk of strip-ordered lidar touches a
