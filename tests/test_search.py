@@ -183,15 +183,15 @@ def test_a_fit_is_reused_only_for_a_hypothesis_that_starts_the_same(mountains):
     best = found.best
     near = replace(best, kappa=best.kappa + math.radians(0.2), tx=best.tx + 3.0)
     again = judge(moving, replace(found, best=near), method="search", tie_cell=20.0, fits=fits)
-    assert len(fits.fits) == 1 and again.details["refinement"]["reused"]
+    assert len(fits.fits) == 1 and again.evidence.refinement.reused
     assert np.allclose(again.T_ref_mov.matrix, first.T_ref_mov.matrix)
     fresh = judge(moving, replace(found, best=near), method="search", tie_cell=20.0,
                   fits=FitCache.of(ref))
-    assert not fresh.details["refinement"]["reused"] and fresh.confident == again.confident
+    assert not fresh.evidence.refinement.reused and fresh.confident == again.confident
     assert np.allclose(fresh.T_ref_mov.matrix[:3, 3], first.T_ref_mov.matrix[:3, 3], atol=2.0)
     far = replace(best, kappa=best.kappa + math.radians(2.0))
     judged = judge(moving, replace(found, best=far), method="search", tie_cell=20.0, fits=fits)
-    assert not judged.details["refinement"]["reused"] and len(fits.fits) == 2
+    assert not judged.evidence.refinement.reused and len(fits.fits) == 2
     # and the answer is the hidden one: 2 m on the ground is a tenth of a tie cell
     est, true = first.T_ref_mov.parameters(), scene.T_ref_mov.parameters()
     assert first.confident and est.scale / true.scale == pytest.approx(1.0, abs=0.005)
@@ -287,7 +287,7 @@ def test_auto_registers_flat_farmland_by_what_stands_on_it(farmland):
     # the fields' heights leave about 0.38 of their spread unexplained at the truth (tie points
     # on trees and farmsteads against 5 m cells), over the verdict's MAX_UNEXPLAINED: the answer
     # is right, but it is not called sure (the pose is what this test holds to)
-    assert result.coarse.details["channel"] == "objects"
+    assert result.coarse.evidence.channel == "objects"
     assert abs((np.degrees(est.kappa - true.kappa) + 180) % 360 - 180) < 0.5  # degrees
     assert est.scale / true.scale == pytest.approx(1.0, abs=0.005)
     centre = scene.moving.mean(axis=0, keepdims=True)
@@ -393,9 +393,9 @@ def test_the_continuous_fit_decides_between_the_heights_and_the_correlation(smal
     for found in (by_heights, replace(by_correlation, alternative=by_heights)):
         result = judge_choice(moving, found, method="search", tie_cell=150.0,
                               fits=FitCache.of(ref))
-        assert result.details["search_best"]["kappa_deg"] == pytest.approx(
+        assert result.evidence.search_best.kappa_deg == pytest.approx(
             np.degrees(right.kappa))
-        assert result.details["residual_ratio"] < 0.3
+        assert result.evidence.residual_ratio < 0.3
 
 
 def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
@@ -418,17 +418,17 @@ def test_a_pose_is_judged_by_the_residuals_it_leaves(small_block):
                      tie_cell=150.0, fits=fits)
 
     good, bad = judged(right, wrong), judged(wrong, right)
-    assert good.details["refinement"]["taken"]
-    assert good.details["pose_residual_ratio"] == good.details["residual_ratio"] < 0.3
-    assert not bad.details["refinement"]["taken"]  # a wrong pose's fit runs off
+    assert good.evidence.refinement.taken
+    assert good.evidence.pose_residual_ratio == good.evidence.residual_ratio < 0.3
+    assert not bad.evidence.refinement.taken  # a wrong pose's fit runs off
     # then the grid's pose speaks: its heights are unrelated to the surface's (about sqrt 2)
     grid_ratio = HeightCheck(fits.sampler).residual_ratio(moving, wrong)
-    assert bad.details["pose_residual_ratio"] == pytest.approx(grid_ratio) and grid_ratio > 0.8
+    assert bad.evidence.pose_residual_ratio == pytest.approx(grid_ratio) and grid_ratio > 0.8
     assert explains_better(good, bad) and not explains_better(bad, good)
     # however small the residuals of a fit that settled but was not taken (it disagreed with
     # its search), they do not speak for the pose returned
-    untaken = replace(bad, details={**bad.details, "residual_ratio": 0.01, "refinement": {
-        **bad.details["refinement"], "settled": True}})
+    untaken = replace(bad, evidence=replace(bad.evidence, residual_ratio=0.01, refinement=replace(
+        bad.evidence.refinement, settled=True)))
     assert not explains_better(untaken, good)
 
 
@@ -484,7 +484,7 @@ def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_i
     moving, true = _local_truth(scene, ref)
     right = replace(_pose(true, score=2.0), ncc=0.7)
     wrong = _pose(true, turn_deg=90.0, rescale=0.6, score=1.0)
-    options = {"method": "search", "tie_cell": 150.0, "extra": {}}
+    options = {"method": "search", "tie_cell": 150.0, "moments": None}
 
     def found(h, rival):
         return SearchResult(h, rival, h, ((h,),), 2)
@@ -508,17 +508,17 @@ def test_the_heights_are_judged_only_where_needed_with_the_verdicts_of_judging_i
     # the objects sure: the heights' answer is not judged (one fit, the objects')
     heights, objects, n_fits = by_turns(elsewhere, sure)
     assert objects.confident and n_fits == 1
-    assert not heights.confident and heights.details["judged"] is False
+    assert not heights.confident and heights.evidence.judged is False
     assert same(objects, in_turn(elsewhere, sure)[1])
     # the objects unsure: both are judged, with the verdicts of judging in turn
     heights, objects, n_fits = by_turns(elsewhere, unsure)
-    assert not objects.confident and n_fits == 2 and "judged" not in heights.details
+    assert not objects.confident and n_fits == 2 and heights.evidence.judged
     assert all(map(same, (heights, objects), in_turn(elsewhere, unsure)))
     # the two answers start at the same pose: the heights' fit, made first, serves both
     near = found(replace(right, kappa=right.kappa + math.radians(0.2), ncc=0.3), wrong)
     heights, objects, n_fits = by_turns(near, sure)
-    assert n_fits == 1 and objects.details["refinement"]["reused"]
-    assert "judged" not in heights.details
+    assert n_fits == 1 and objects.evidence.refinement.reused
+    assert heights.evidence.judged
     assert all(map(same, (heights, objects), in_turn(near, sure)))
 
 
@@ -537,3 +537,22 @@ def test_a_small_block_in_feet_is_found(small_block):
     assert abs((np.degrees(est.kappa - true.kappa) + 180) % 360 - 180) < 1.0  # degrees
     assert est.scale / true.scale == pytest.approx(1.0, abs=0.01)
     assert np.hypot(*err[0, :2]) < 12.0  # metres: a quarter of the tie cell (150 ft, 46 m)
+
+
+def test_the_score_around_a_right_pose_peaks_at_zero_shift_and_not_elsewhere(small_block):
+    """:func:`~tiereg.coarse.scoring.score_around` (the report's correlation picture): tie
+    points at their true place score best within a cell of zero shift; shifted by 6 cells,
+    the best score moves 6 cells the other way."""
+    from tiereg.coarse.scoring import score_around
+    from tiereg.transform import Transform
+
+    scene, ref = small_block
+    placed = (Transform.from_translation(-ref.origin) @ scene.T_ref_mov).apply(scene.moving)
+    cell = 40.0
+    out = score_around(placed, ref, cell, cells=10)
+    assert out.shape == (21, 21)
+    peak = np.array(np.unravel_index(np.argmax(out), out.shape)) - 10
+    assert np.abs(peak).max() <= 1
+    shifted = score_around(placed + (6 * cell, 0.0, 0.0), ref, cell, cells=10)
+    peak = np.array(np.unravel_index(np.argmax(shifted), shifted.shape)) - 10
+    assert abs(peak[1] + 6) <= 1 and abs(peak[0]) <= 1  # columns run east

@@ -66,7 +66,7 @@ def _summary(result) -> str:
     units = result.inputs.units
     stages = ["no coarse stage"]
     if result.coarse:
-        channel = result.coarse.details.get("channel")  # by heights, or by what stands on them
+        channel = result.coarse.evidence.channel  # by heights, or by what stands on them
         stages = [f"coarse {result.coarse.method}" + (" on objects" if channel == "objects"
                                                       else "")]
     if result.fine is not None:

@@ -65,10 +65,10 @@ def check_overlap(moving: PointsLike, reference: PointsLike, *, cell_size: float
     t0 = time.perf_counter()
     result = register(moving, reference, fine="none", cell_size=cell_size, **options)
     assert result.residuals is not None
-    on = np.isfinite(result.residuals.dz_after)
-    fraction = float(on.mean()) if len(on) else 0.0
+    on = np.isfinite(result.residuals.dz_after)  # the points the quality counts on the surface
     outline, area = overlap_outline(result.residuals.xyz[on, :2], result.cell_size)
-    return OverlapResult(result, fraction, area, outline, time.perf_counter() - t0)
+    return OverlapResult(result, result.quality.overlap_fraction, area, outline,
+                         time.perf_counter() - t0)
 
 
 def overlap_outline(xy: np.ndarray, cell: float) -> tuple[dict[str, Any], float]:

@@ -50,7 +50,7 @@ class RotationScale:
     peak: float
 
 
-def _taper(p: Prepared) -> np.ndarray:
+def taper(p: Prepared) -> np.ndarray:
     """Circular Hann window over the support, centred on it (no 0/90 deg edge streaks)."""
     rows, cols = np.nonzero(p.support)
     if len(rows) == 0:
@@ -116,7 +116,7 @@ def rotation_scale_candidates(
     """Top-``k`` (theta, scale) peaks of ``method`` in {"fmt", "afmt", "qafmt"}, with twins."""
     n = 1 << int(math.ceil(math.log2(2 * max(*reference.image.shape, *moving.image.shape))))
     if robust:
-        imgs = [_taper(reference), _taper(moving)]
+        imgs = [taper(reference), taper(moving)]
     else:  # classic: the (filled) heights as they are, DC removed
         imgs = [np.where(p.support, p.image - p.image[p.support].mean(), 0.0)
                 for p in (reference, moving)]

@@ -23,7 +23,7 @@ from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform, rotation_matrix
 from .refine import SurfaceFit, fit_to_surface, fit_to_surface_many, height_offset
-from .result import Candidate, CoarseResult
+from .result import Candidate, CoarseResult, Evidence, Moments, Peak, Refinement
 from .scoring import HEIGHTS, MIN_OVERLAP, OBJECTS, Channel, Hypothesis, ScaleRange
 from .search import HeightCheck, SearchResult
 
@@ -302,7 +302,7 @@ def judge(
     method: str,
     tie_cell: float,
     fits: FitCache,
-    extra: dict | None = None,
+    moments: Moments | None = None,
     channel: Channel = HEIGHTS,
 ) -> CoarseResult:
     """The refined pose of a search's answer against the finest reference surface (that of
@@ -332,31 +332,27 @@ def judge(
         cell_size=cell, ncc=best.ncc, peak_ratio=float(min(ratio, 1e6)), overlap=best.overlap,
         psr=0.0, candidates=tuple(candidate(h) for level in found.levels for h in level),
         reasons=tuple(reasons), seconds=time.perf_counter() - t0,
-        details={**_details(found, refined, channel), **(extra or {})},
+        evidence=_evidence(found, refined, channel, moments),
     )
 
 
-def _details(found: SearchResult, refined: _Refined, channel: Channel) -> dict:
+def _evidence(found: SearchResult, refined: _Refined, channel: Channel,
+              moments: Moments | None) -> Evidence:
     best, fit = found.best, refined.fit
     kappa, log_sigma = fit.params[0], fit.params[1]
-    return {
-        "channel": channel.name,
-        "hypotheses": found.n_hypotheses,
-        "search_best": {"kappa_deg": math.degrees(best.kappa), "scale": best.sigma,
-                        "score": best.score},
-        "rival": None if found.runner_up is None else {
-            "kappa_deg": math.degrees(found.runner_up.kappa),
-            "scale": found.runner_up.sigma, "score": found.runner_up.score},
-        "refinement": {"iterations": fit.iterations, "converged": fit.converged,
-                       "sigma0": fit.sigma0, "n_used": fit.n_used,
-                       "scale_change": math.expm1(log_sigma - math.log(best.sigma)),
-                       "turn_deg": math.degrees(kappa - best.kappa),
-                       "shift_cells": refined.moved, "reused": refined.reused,
-                       "settled": refined.settled, "taken": refined.taken},
-        "residual_ratio": refined.residual_ratio,  # of the fit, taken or not
-        "pose_residual_ratio": refined.pose_residual_ratio,  # of the pose returned
-        "verified": [{"kappa_deg": math.degrees(h.kappa), "scale": h.sigma, "score": h.score,
-                      **({"residual_ratio": h.residual_ratio}
-                         if np.isfinite(h.residual_ratio) else {})}
-                     for level in found.levels for h in level],
-    }
+    return Evidence(
+        channel=channel.name, hypotheses=found.n_hypotheses, search_best=peak(best),
+        rival=None if found.runner_up is None else peak(found.runner_up),
+        refinement=Refinement(
+            iterations=fit.iterations, converged=fit.converged, sigma0=fit.sigma0,
+            n_used=fit.n_used, scale_change=math.expm1(log_sigma - math.log(best.sigma)),
+            turn_deg=math.degrees(kappa - best.kappa), shift_cells=refined.moved,
+            reused=refined.reused, settled=refined.settled, taken=refined.taken),
+        residual_ratio=refined.residual_ratio, pose_residual_ratio=refined.pose_residual_ratio,
+        verified=tuple(peak(h, h.residual_ratio) for level in found.levels for h in level),
+        moments=moments)
+
+
+def peak(h: Hypothesis, residual_ratio: float = math.nan) -> Peak:
+    """A sweep hypothesis as evidence (heading in degrees)."""
+    return Peak(math.degrees(h.kappa), h.sigma, h.score, residual_ratio)

@@ -31,8 +31,9 @@ from scipy import fft
 
 from ..grid import GridSpec, rasterize
 from ..reference import Reference
-from .fourier_mellin import _taper
+from .fourier_mellin import taper
 from .preprocess import Prepared, prepare
+from .result import Moments
 from .scoring import ScaleRange, Scorer
 from .search import HeightCheck, SearchResult, verify_candidates
 
@@ -57,7 +58,7 @@ def spectral_orientation(p: Prepared, *, excess: float = 1.0) -> Orientation:
     noise), but on sparse tie-point grids it follows the lattice's own peaks: on four simulated
     blocks it found no heading at 5 and two at 1.
     """
-    img = _taper(p)
+    img = taper(p)
     n = 1 << math.ceil(math.log2(2 * max(img.shape)))
     power = np.abs(fft.fftshift(fft.fft2(img, s=(n, n)))) ** 2
     f = np.arange(n) - n // 2
@@ -86,11 +87,11 @@ def moments_search(
     tie_cell: float,
     scales: ScaleRange | None = None,
     heights: HeightCheck | None = None,
-) -> tuple[SearchResult, dict]:
+) -> tuple[SearchResult, Moments]:
     """Candidates from the spectra's orientations and a scale scan, verified and refined;
     ``moving`` is local (centred) model coordinates; ``heights`` as in
     :func:`~tiereg.coarse.search.verify_candidates`. Returns the result and what the
-    orientations were (for the coarse stage's details)."""
+    orientations were (evidence of the coarse stage)."""
     lo, hi = moving[:, :2].min(axis=0), moving[:, :2].max(axis=0)
     mgrid = rasterize(moving, GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], tie_cell),
                       stats=("median",))
@@ -110,6 +111,4 @@ def moments_search(
                               log_sigma=math.log(SCALE_RATIO),
                               n_tried=len(kappas) * len(sigmas), scales=scales,
                               heights=heights)
-    info = {"heading_from_moments_deg": math.degrees(kappa0) % 180.0,
-            "anisotropy_moving": o_mov.anisotropy, "anisotropy_reference": o_ref.anisotropy}
-    return found, info
+    return found, Moments(math.degrees(kappa0) % 180.0, o_mov.anisotropy, o_ref.anisotropy)

@@ -396,3 +396,24 @@ def _window(mref: MaskedReference, spec: GridSpec, specs: list[GridSpec],
         mask[rs - r_lo : re - r_lo, cs - c_lo : ce - c_lo] = mref.mask[rs:re, cs:ce]
     window = GridSpec(spec.x0 + c_lo * c, spec.y0 - r_lo * c, c, image.shape)
     return MaskedReference(image, mask), window
+
+
+def score_around(placed: np.ndarray, ref: Reference, cell_size: float, *,
+                 cells: int) -> np.ndarray | None:
+    """The match score (:func:`~tiereg.coarse.correlation.match_score`) of tie points already
+    placed in the reference's local frame, at every shift of up to ``cells`` cells of
+    ``cell_size`` each way: a ``(2 cells + 1)`` square with zero shift at its centre, -inf where
+    a shift cannot be scored; ``None`` where none near zero can (a registration that failed)."""
+    found = Scorer(placed, ref, cell_size, 1).surface(0.0, 1.0)
+    if found is None:
+        return None
+    score = found.score
+    i0 = np.rint(found.index_of(0.0, 0.0)).astype(int)  # the index of zero shift
+    out = np.full((2 * cells + 1, 2 * cells + 1), -np.inf)
+    r0, c0 = i0[0] - cells, i0[1] - cells
+    rs, cs = max(r0, 0), max(c0, 0)
+    re, ce = min(i0[0] + cells + 1, score.shape[0]), min(i0[1] + cells + 1, score.shape[1])
+    if re <= rs or ce <= cs:
+        return None
+    out[rs - r0:re - r0, cs - c0:ce - c0] = score[rs:re, cs:ce]
+    return out if np.isfinite(out).any() else None

@@ -36,12 +36,13 @@ from .judge import (
     judge,
     may_be_confident,
     may_explain,
+    peak,
     rival_ratio,
     starts_same,
 )
 from .moments import moments_search
 from .preprocess import prepare
-from .result import CoarseResult
+from .result import CoarseResult, Evidence, Moments
 from .scoring import (
     HEIGHTS,
     MAX_REFERENCE_CELLS,
@@ -149,14 +150,14 @@ def register_similarity(
         return _register_auto(moving_xyz, reference, tie_cell=tie_cell, scales=scales, fits=fits,
                               free_tilt=free_tilt, t0=t0)
     heights = HeightCheck(fits.sampler, free_tilt=free_tilt)
-    extra: dict = {}
+    moments: Moments | None = None
     timings: dict[str, float] = {}
     try:
         if method in FREQUENCY_METHODS:
             found = frequency_search(moving_xyz, reference, tie_cell=tie_cell, method=method,
                                      scales=scales, heights=heights)
         elif method == "moments":
-            found, extra = moments_search(moving_xyz, reference, tie_cell=tie_cell,
+            found, moments = moments_search(moving_xyz, reference, tie_cell=tie_cell,
                                           scales=scales, heights=heights)
         else:
             # level, unscaled data are common: the identity is always among the hypotheses
@@ -166,7 +167,7 @@ def register_similarity(
         return CoarseResult(Transform.identity(), method, False, 0.0, tie_cell, 0.0, 1.0, 0.0,
                             0.0, (), (no_overlap_reason(scales),), time.perf_counter() - t0)
     timings[method] = time.perf_counter() - t0
-    options = {"method": method, "tie_cell": tie_cell, "extra": extra, "fits": fits}
+    options = {"method": method, "tie_cell": tie_cell, "moments": moments, "fits": fits}
     # where the checks that need no fit already rule out a confident answer from the heights,
     # what stands on the ground is searched first, and the heights' answer is judged only if
     # it is still needed (:func:`judged_by_turns`): on the 95 large blocks of the coarse
@@ -178,7 +179,7 @@ def register_similarity(
         result = _objects_too(moving_xyz, reference, found, result, options, seeds=seeds,
                               scales=scales, heights=heights, timings=timings)
     return replace(result, seconds=time.perf_counter() - t0,
-                   details={**result.details, "timings_s": _rounded(timings)})
+                   evidence=replace(result.evidence, timings_s=_rounded(timings)))
 
 
 def _register_auto(moving_xyz: np.ndarray, reference: Reference, *, tie_cell: float,
@@ -192,7 +193,8 @@ def _register_auto(moving_xyz: np.ndarray, reference: Reference, *, tie_cell: fl
         auto = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
                                    scales=scales, method="search", fits=fits,
                                    free_tilt=free_tilt)
-        return replace(auto, method="auto", details={**auto.details, "decided_by": "search"})
+        return replace(auto, method="auto",
+                       evidence=replace(auto.evidence, decided_by="search"))
     # frequency domain first; the exhaustive sweep when that is not enough
     heights = HeightCheck(fits.sampler, free_tilt=free_tilt)
     try:
@@ -208,16 +210,16 @@ def _register_auto(moving_xyz: np.ndarray, reference: Reference, *, tie_cell: fl
         timings["qafmt_judge"] = judged.seconds
         if judged.confident:
             return replace(judged, method="auto", seconds=time.perf_counter() - t0,
-                           details={**judged.details, "decided_by": "qafmt",
-                                    "timings_s": _rounded(timings)})
+                           evidence=replace(judged.evidence, decided_by="qafmt",
+                                            timings_s=_rounded(timings)))
     seeds = [] if quick is None else [(h.kappa, h.sigma) for lv in quick.levels for h in lv]
     full = register_similarity(moving_xyz, reference, tie_cell=tie_cell,
                                scales=scales, method="search", seeds=seeds,
                                fits=fits, free_tilt=free_tilt)
     return replace(full, method="auto", seconds=time.perf_counter() - t0,
                    hypotheses=full.hypotheses + considered(quick),
-                   details={**full.details, "decided_by": "search", "timings_s": _rounded(
-                       {**timings, **full.details.get("timings_s", {})})})
+                   evidence=replace(full.evidence, decided_by="search", timings_s=_rounded(
+                       {**timings, **dict(full.evidence.timings_s)})))
 
 
 def _objects_too(moving_xyz: np.ndarray, reference: Reference, found: SearchResult,
@@ -245,9 +247,8 @@ def _objects_too(moving_xyz: np.ndarray, reference: Reference, found: SearchResu
     timings["objects"] = t_searched - t_objects + second.seconds
     take = second.confident or (not result.confident and explains_better(second, result))
     result, other = (second, result) if take else (result, second)
-    return replace(result, hypotheses=result.hypotheses + other.hypotheses, details={
-        **result.details, "other_channel": {**other.details, "confident": other.confident,
-                                            "reasons": list(other.reasons)}})
+    return replace(result, hypotheses=result.hypotheses + other.hypotheses,
+                   evidence=replace(result.evidence, other_channel=other))
 
 
 def no_overlap_reason(scales: ScaleRange) -> str:
@@ -312,9 +313,8 @@ def _not_judged(found: SearchResult, *, method: str, tie_cell: float) -> CoarseR
         best.transform(), method, False, 0.0, tie_cell * best.sigma, best.ncc,
         float(min(rival_ratio(found), 1e6)), best.overlap, 0.0, (),
         (NOT_JUDGED,), 0.0, hypotheses=considered(found),
-        details={"channel": HEIGHTS.name, "judged": False, "hypotheses": found.n_hypotheses,
-                 "search_best": {"kappa_deg": math.degrees(best.kappa), "scale": best.sigma,
-                                 "score": best.score}})
+        evidence=Evidence(channel=HEIGHTS.name, judged=False, hypotheses=found.n_hypotheses,
+                          search_best=peak(best)))
 
 
 def judge_choice(moving_xyz: np.ndarray, found: SearchResult, **options) -> CoarseResult:
@@ -337,8 +337,8 @@ def explains_better(a: CoarseResult, b: CoarseResult) -> bool:
     Counting a fit that was not taken lost a levelled city block's right answer (residual ratio
     0.658) to a wrong one whose fit, 19 % off its search's scale and not taken, had 0.653; not
     counting the pose at all then lost a farmland answer that was right on the grid."""
-    return a.details["pose_residual_ratio"] < b.details["pose_residual_ratio"]
+    return a.evidence.pose_residual_ratio < b.evidence.pose_residual_ratio
 
 
-def _rounded(timings: dict[str, float]) -> dict[str, float]:
-    return {k: round(v, 3) for k, v in timings.items()}
+def _rounded(timings: dict[str, float]) -> tuple[tuple[str, float], ...]:
+    return tuple((k, round(v, 3)) for k, v in timings.items())

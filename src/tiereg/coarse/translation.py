@@ -33,7 +33,7 @@ from .correlation import (
 )
 from .preprocess import Prepared, prepare
 from .refine import height_offset, refine_translation
-from .result import Candidate, CoarseResult
+from .result import Candidate, CoarseResult, Evidence, ModelCheck, Refinement
 
 MIN_OVERLAP = 0.3  # of the moving grid's support
 MIN_NCC = 0.5
@@ -60,7 +60,7 @@ def _best_shift(ref: Prepared, mov: Prepared) -> tuple[np.ndarray, np.ndarray, n
 
 def _model_check(
     xyz: np.ndarray, sampler: SurfaceSampler, translation: np.ndarray, sigma: float, cell: float
-) -> dict[str, float]:
+) -> ModelCheck:
     """Residual NMAD after re-fitting the shift for slightly rotated or scaled copies of the block.
 
     If a rotated or scaled block fits the reference clearly better than the shifted one, the
@@ -69,12 +69,12 @@ def _model_check(
     so grid alignment noise does not enter.
     """
     centre = xyz.mean(axis=0)
-    out = {"translation_only": sigma}
+    turned = []
     for kappa, s in MODEL_CHECK:
         T_try = Transform.about(centre, Transform.from_parameters(scale=s, kappa=kappa))
         fit = refine_translation(T_try.apply(xyz), sampler, translation, search_radius=2 * cell)
-        out[f"kappa{np.degrees(kappa):+.0f}_scale{s:.3f}"] = fit.sigma0
-    return out
+        turned.append((float(np.degrees(kappa)), s, fit.sigma0))
+    return ModelCheck(sigma, tuple(turned))
 
 
 def register_translation(
@@ -128,7 +128,7 @@ def register_translation(
     shift_xy = np.array(to_map(subpixel_peak(ncc, best_idx)))
     translation, fit, reasons = _sub_cell(moving_xyz, sampler, shift_xy, c)
     reasons += _peak_reasons(best, peak_ratio)
-    check: dict[str, float] = {}
+    check: ModelCheck | None = None
     if model_check and np.isfinite(fit.sigma0):
         check = _model_check(moving_xyz, sampler, translation, fit.sigma0, c)
         reasons += _model_reasons(check, fit.sigma0)
@@ -150,12 +150,10 @@ def register_translation(
         candidates=tuple(cand for cand, _ in candidates),
         reasons=tuple(reasons),
         seconds=time.perf_counter() - t_start,
-        details={
-            "refinement": {"iterations": fit.iterations, "converged": fit.converged,
-                           "n_used": fit.n_used, "sigma0": fit.sigma0},
-            "model_check": check,
-            "moving_occupancy": round(mgrid.occupancy, 4),
-        },
+        evidence=Evidence(
+            refinement=Refinement(iterations=fit.iterations, converged=fit.converged,
+                                  sigma0=fit.sigma0, n_used=fit.n_used),
+            model_check=check, moving_occupancy=mgrid.occupancy),
     )
 
 
@@ -193,8 +191,8 @@ def _sub_cell(moving_xyz: np.ndarray, sampler: SurfaceSampler, shift_xy: np.ndar
             ["sub-cell refinement did not converge; kept the correlation peak"])
 
 
-def _model_reasons(check: dict[str, float], sigma0: float) -> list[str]:
-    rival = min(v for k, v in check.items() if k != "translation_only")
+def _model_reasons(check: ModelCheck, sigma0: float) -> list[str]:
+    rival = min(v for _, _, v in check.turned)
     if rival >= MODEL_CHECK_GAIN * sigma0:
         return []
     return ["a rotated or scaled moving block fits the reference better than a shifted one "

@@ -76,31 +76,17 @@ def _sigma_xy(precision: dict[str, Any] | None) -> float | None:
     return None if sx is None or sy is None else float(np.hypot(sx, sy) / np.sqrt(2))
 
 
-WINDOW_CELLS = 15  # the correlation picture: shifts up to this many cells each way
+PICTURE_CELLS = 15  # the correlation picture: shifts up to this many cells each way
 
 
 def _correlation_window(result) -> np.ndarray | None:
     """The coarse score surface of the registered tie points around zero shift, or ``None``."""
-    from ..coarse.scoring import Scorer
+    from ..coarse.scoring import score_around
 
     if result.coarse is None or result.reference is None or result.residuals is None:
         return None
     placed = result.residuals.xyz - result.reference.origin
-    found = Scorer(placed, result.reference, result.cell_size, 1).surface(0.0, 1.0)
-    if found is None:
-        return None
-    score = found.score
-    i0 = np.rint(found.index_of(0.0, 0.0)).astype(int)  # the index of zero shift
-    k = WINDOW_CELLS
-    out = np.full((2 * k + 1, 2 * k + 1), -np.inf)
-    r0, c0 = i0[0] - k, i0[1] - k
-    rs, cs = max(r0, 0), max(c0, 0)
-    re, ce = min(i0[0] + k + 1, score.shape[0]), min(i0[1] + k + 1, score.shape[1])
-    if re <= rs or ce <= cs:
-        return None
-    out[rs - r0:re - r0, cs - c0:ce - c0] = score[rs:re, cs:ce]
-    # no shift near the answer overlaps enough to score (a registration that failed)
-    return out if np.isfinite(out).any() else None
+    return score_around(placed, result.reference, result.cell_size, cells=PICTURE_CELLS)
 
 
 def report_from_result_file(result_json: str | os.PathLike[str],
