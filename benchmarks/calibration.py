@@ -50,6 +50,7 @@ HERE = Path(__file__).resolve().parent
 RESULTS, WORK = HERE / "results", HERE / "work"
 sys.path.insert(0, str(HERE))
 
+from calibration_blocks import PeakMemory, make_block, truth_camera  # noqa: E402
 from calibration_solvers import speed_block  # noqa: E402
 
 from tiereg.calibrate import calibrate  # noqa: E402
@@ -57,14 +58,11 @@ from tiereg.calibrate.lidar import LidarPatches, lidar_reference  # noqa: E402
 from tiereg.calibrate.model import transform_model  # noqa: E402
 from tiereg.control import select_control_points  # noqa: E402
 from tiereg.robust import nmad  # noqa: E402
-from tiereg.simulate import ImageBlock, LidarSurvey, SceneSpec, make_scene, make_world  # noqa: E402
 from tiereg.simulate.cameras import (  # noqa: E402
     CameraModel,
     FlightPlan,
     fitted_registration,
-    flat_world,
     flawed_model,
-    make_camera_block,
 )
 from tiereg.transform import Transform  # noqa: E402
 
@@ -137,37 +135,6 @@ def _quick(case: Case, plan: FlightPlan, half: str) -> Case:
 
     return replace(case, plan=plan, half=half,
                    name=case.name.split("-")[0] + f"-{case.world}-quick")
-
-
-def truth_camera(seed: int) -> CameraModel:
-    return CameraModel.random(np.random.default_rng([seed, 3]), width_px=3000, height_px=2000)
-
-
-def block_side_m(plan: FlightPlan, camera: CameraModel) -> float:
-    """The side of the square of ground the flight plan covers."""
-    h = plan.flying_height_m
-    along = h * camera.height_px / camera.focal_px * (1 + (plan.images_per_strip - 1)
-                                                       * (1 - plan.forward_overlap))
-    across = h * camera.width_px / camera.focal_px * (1 + (plan.strips - 1)
-                                                      * (1 - plan.side_overlap))
-    return max(along, across) * 1.05
-
-
-def make_block(world_kind: str, flat: bool, plan: FlightPlan, camera: CameraModel, seed: int,
-               *, max_points: int = 5000, heading: float | None = None):
-    """``(scene, block)``: the world, its lidar and the image block over it."""
-    rng = np.random.default_rng([seed, 5])
-    side = block_side_m(plan, camera)
-    lidar = 1.3 * side + 150
-    spec = SceneSpec(kind=world_kind, seed=seed, world_size_m=lidar + 300, lidar_size_m=lidar,
-                     survey=LidarSurvey(density_per_m2=1.0, gap_probability=0.0),
-                     block=ImageBlock(side_m=side, tie_points_per_km2=20000,
-                                      blunder_fraction=0.02),
-                     block_heading_deg=float(rng.uniform(0, 180)) if heading is None else heading,
-                     overlap=1.0)
-    world = make_world(world_kind, size_m=spec.world_size_m, cell=spec.world_cell_m, seed=seed)
-    scene = make_scene(spec, world=flat_world(world) if flat else world)
-    return scene, make_camera_block(scene, plan, camera, max_points=max_points, seed=seed)
 
 
 def flawed(block, camera: CameraModel, seed: int):
@@ -247,34 +214,6 @@ def evaluate(rec, camera: CameraModel, block, patches: LidarPatches, origin, che
             "centre_rms_z_m": float(np.sqrt(np.mean(d[:, 2] ** 2))),
             "check_rms_m": float(np.sqrt(np.mean(dz**2))) if len(dz) else float("nan"),
             "check_nmad_m": float(nmad(dz)) if len(dz) else float("nan")}
-
-
-def _rss_mb() -> float:
-    import psutil
-
-    return psutil.Process().memory_info().rss / 1e6
-
-
-class PeakMemory:
-    """The peak resident memory of this process while in the block (psutil, sampled)."""
-
-    def __enter__(self):
-        import threading
-
-        self.start = self.peak = _rss_mb()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._watch, daemon=True)
-        self._thread.start()
-        return self
-
-    def _watch(self):
-        while not self._stop.wait(0.05):
-            self.peak = max(self.peak, _rss_mb())
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, _rss_mb())
 
 
 def run_case(case: Case, folder: Path) -> dict:

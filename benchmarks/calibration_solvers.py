@@ -53,7 +53,7 @@ def _python_plane_cost(normal, point, weight):
 
 def write_speed_block(folder: Path) -> dict:
     """The speed block's model, lidar and registration on disk; its size."""
-    from calibration import make_block
+    from calibration_blocks import make_block
 
     from tiereg.simulate.cameras import (
         CameraModel,
@@ -76,7 +76,7 @@ def write_speed_block(folder: Path) -> dict:
 
 def _child(folder: Path, mode: str, threads: int) -> dict:
     """Run in a fresh process: a whole calibration, or one adjustment with a solver."""
-    from calibration import PeakMemory
+    from calibration_blocks import PeakMemory
 
     lidar = np.load(folder / "lidar.npy")
     T = np.load(folder / "T.npy")
