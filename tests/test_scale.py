@@ -157,3 +157,29 @@ def test_a_translation_search_coarsens_its_own_cell_and_refuses_a_given_one_too_
     assert abs(given - 12.0) <= ref.base_cell / 2
     with pytest.raises(InputError, match="cell_size 1 is too fine"):
         translation_grid(ref, block, cell_size=1.0, tie_cell=1.0)
+
+
+def test_a_scale_range_given_narrows_the_search_to_it(suburb_world):
+    """`scale_range` (reference units per model unit): a block at 50 is found inside
+    (40, 62) as without it; told (5, 10), a range that excludes the truth, the answer is not
+    confident; a range the wrong way round is refused, naming the parameter."""
+    from tiereg.errors import InputError
+    from tiereg.stages import searched_scales
+
+    spec = SceneSpec(kind="suburban", seed=5, world_size_m=3000.0, lidar_size_m=2000.0,
+                     block=ImageBlock(side_m=1200.0), survey=LidarSurvey(density_per_m2=0.5),
+                     overlap=0.9, hidden=HiddenTransform(heading_deg=73.0, scale=0.02))
+    scene = make_scene(spec, world=suburb_world)
+    ref = prepare_reference(ArraySource(PointSet(scene.lidar.xyz)))
+    local = scene.moving - scene.moving.mean(axis=0)
+    cell = tie_cell_for(local)
+    told = searched_scales(local, ref, cell, (40.0, 62.0))
+    assert (told.lowest, told.highest) == (40.0, 62.0)
+    assert searched_scales(local, ref, cell, (1e-6, 1e6)) == ScaleRange.of(local, ref, cell)
+    inside = register(scene.moving, ref, fine="none", level="none", scale_range=(40.0, 62.0))
+    assert inside.confident, inside.reasons
+    assert inside.T_ref_mov.scale == pytest.approx(50.0, rel=0.02)
+    outside = register(scene.moving, ref, fine="none", level="none", scale_range=(5.0, 10.0))
+    assert not outside.confident
+    with pytest.raises(InputError, match="`scale_range` must be two positive numbers"):
+        register(scene.moving, ref, scale_range=(10.0, 5.0))

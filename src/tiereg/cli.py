@@ -118,6 +118,7 @@ def _cmd_register(args: argparse.Namespace) -> int:
                       cell_size=args.cell_size, initial=initial, level=args.level,
                       free_tilt=args.free_tilt, moving_format=args.moving_format,
                       reference_format=args.reference_format,
+                      scale_range=tuple(args.scale_range) if args.scale_range else None,
                       progress=_progress_factory(args.quiet))
     if args.output_points:
         from .io import read_points

@@ -124,6 +124,9 @@ def _register_args(p: Parser) -> None:
     p.add_argument("--initial", metavar="TRANSFORM",
                    help="a starting pose (RESULT.json or a 16-number matrix file); with "
                    "--coarse none the fine stage starts from it")
+    p.add_argument("--scale-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="the scale is known to lie in this range (reference units per model "
+                   "unit): only it is searched (default: every scale the data allow)")
     p.add_argument("--report", metavar="DIR",
                    help="write a report: maps, histograms, statistics, control points, report.html")
     p.add_argument("--output-points", metavar="PATH",

@@ -10,7 +10,8 @@ reference's own, built once per archive) and swept side by side on the cluster
 (:func:`~tiereg.coarse.search.search`, heights). The best distinct places are then *judged*:
 each is registered (:func:`tiereg.register`, the usual coarse and fine stages and verdict) on a
 window of the full-resolution reference around it, one search grid wide at the finest level,
-whose source reads only the tiles there. The answer is confident only when a judged window's
+whose source reads only the tiles there, at the scales within an octave of the screening's
+(:func:`judge_scales`). The answer is confident only when a judged window's
 answer is confident and no other judged window is confidently somewhere else.
 
 A scale range wider than an octave is searched as octaves, each with windows of its own size.
@@ -175,7 +176,8 @@ def find_in_mosaic(moving: Any, ref: Reference, *, client: Any = None,
     width = max(x1 - x0, y1 - y0)
     if MAX_REFERENCE_CELLS * tie_cell * sigma_range[0] >= width:
         # the whole reference is one search grid at the finest level: register searches it all
-        result = submit_all(client, _register, [ref], moving=moving, options=options)[0]
+        result = submit_all(client, _register, [(ref, sigma_range)], moving=moving,
+                            options=options)[0]
         return MosaicResult(result, 1, (), (result.confident,), 0.0, time.perf_counter() - t0)
     cands: list[Candidate] = []
     n_windows = 0
@@ -197,7 +199,8 @@ def find_in_mosaic(moving: Any, ref: Reference, *, client: Any = None,
                          f"scale in {sigma_range}; check that the block lies in the lidar")
     best = _distinct(cands, top, diag)
     sides = [JUDGE_MARGIN * MAX_REFERENCE_CELLS * tie_cell * c.sigma for c in best]
-    judged = [window_reference(ref, _judge_box(c, side)) for c, side in zip(best, sides)]
+    judged = [(window_reference(ref, _judge_box(c, side)), judge_scales(c, sigma_range))
+              for c, side in zip(best, sides)]
     results = submit_all(client, _register, judged, moving=moving, options=options)
     verdict = _verdict(results, np.median(xyz, axis=0))
     return MosaicResult(verdict, n_windows, tuple(best), tuple(r.confident for r in results),
@@ -209,8 +212,16 @@ def _screen_box(box: Box, *, overview: Reference, moving: np.ndarray, tie_cell: 
     return screen_window(overview, box, moving, tie_cell=tie_cell, sigma_range=sigma_range)
 
 
-def _register(window: Reference, *, moving: Any, options: dict) -> RegistrationResult:
-    return register(moving, window, **options)
+def judge_scales(cand: Candidate, sigma_range: tuple[float, float]) -> tuple[float, float]:
+    """The scales a judged window is searched at: an octave either way of the screening's
+    (good to a sweep step, :data:`SIGMA_RATIO`), inside the range given."""
+    return max(sigma_range[0], cand.sigma / 2), min(sigma_range[1], cand.sigma * 2)
+
+
+def _register(job: tuple[Reference, tuple[float, float]], *, moving: Any,
+              options: dict) -> RegistrationResult:
+    window, scales = job
+    return register(moving, window, **{"scale_range": scales, **options})
 
 
 class Overviews:

@@ -275,6 +275,7 @@ def register(
     initial: Transform | np.ndarray | None = None,
     level: str = "auto",
     free_tilt: bool = False,
+    scale_range: tuple[float, float] | None = None,
     moving_format: str | None = None,
     reference_format: str | None = None,
     progress: ProgressFactory | None = None,
@@ -311,6 +312,11 @@ def register(
     free_tilt
         The moving points may lean by a degree or more (a model levelled from its own points, as
         ``level`` does): the coarse stage then judges poses by the heights after a fitted plane.
+    scale_range
+        ``(low, high)``: the scale is known to lie in this range (reference units per model
+        unit, after ``initial``); the similarity search looks only there (by default at every
+        scale at which the block could be found), and an answer within a sweep step of either
+        end is not confident. Not used by ``coarse="pomf"`` or ``"none"``.
 
     Returns
     -------
@@ -319,9 +325,10 @@ def register(
         answer can be trusted.
     """
     t0 = time.perf_counter()
-    _check_options(coarse=coarse, fine=fine, level=level, cell_size=cell_size)
+    _check_options(coarse=coarse, fine=fine, level=level, cell_size=cell_size,
+                   scale_range=scale_range)
     read = _read_moving(moving, moving_format, t0)
-    options = dict(coarse=coarse, fine=fine, cell_size=cell_size,
+    options = dict(coarse=coarse, fine=fine, cell_size=cell_size, scale_range=scale_range,
                    reference_format=reference_format, progress=progress or no_progress)
     if initial is None and coarse != "none" and level != "none":
         vertical = find_vertical(read.source, read.xyz[read.keep], mode=level)
@@ -332,7 +339,8 @@ def register(
     return _register_from(read, reference, initial=initial, free_tilt=free_tilt, **options)
 
 
-def _check_options(*, coarse: str, fine: str, level: str, cell_size: float | None) -> None:
+def _check_options(*, coarse: str, fine: str, level: str, cell_size: float | None,
+                   scale_range: tuple[float, float] | None = None) -> None:
     if coarse not in COARSE_METHODS:
         raise InputError(f"unknown coarse method {coarse!r}; choose one of {COARSE_METHODS}")
     if fine not in FINE_METHODS:
@@ -344,6 +352,10 @@ def _check_options(*, coarse: str, fine: str, level: str, cell_size: float | Non
         raise InputError(f"unknown levelling {level!r}; choose one of {', '.join(LEVEL_MODES)}")
     if cell_size is not None and not (cell_size > 0 and math.isfinite(cell_size)):
         raise InputError(f"cell_size must be a positive number, got {cell_size}")
+    if scale_range is not None and not (
+            len(scale_range) == 2 and 0 < scale_range[0] <= scale_range[1] < math.inf):
+        raise InputError(f"`scale_range` must be two positive numbers, the lower first, got "
+                         f"{tuple(scale_range)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -395,8 +407,9 @@ def _open_reference(reference: PointsLike | PointSource | Reference, fmt: str | 
 
 def _register_from(moving: Moving, reference: PointsLike | PointSource | Reference, *,
                    initial: Transform | None, coarse: str, fine: str, cell_size: float | None,
-                   free_tilt: bool, reference_format: str | None,
-                   progress: ProgressFactory) -> RegistrationResult:
+                   free_tilt: bool, scale_range: tuple[float, float] | None,
+                   reference_format: str | None, progress: ProgressFactory
+                   ) -> RegistrationResult:
     """The registration of tie points placed by ``initial``: centre, coarse (with its verdict),
     fine, and the heights after."""
     keep = moving.keep
@@ -411,7 +424,7 @@ def _register_from(moving: Moving, reference: PointsLike | PointSource | Referen
         start = no_coarse_stage(mov_local, ref, frames, cell_size=cell_size or tie_cell)
     else:
         start = coarse_stage(mov_local, keep, ref, frames, method=coarse, tie_cell=tie_cell,
-                             cell_size=cell_size, free_tilt=free_tilt)
+                             cell_size=cell_size, free_tilt=free_tilt, scale_range=scale_range)
     polished = fine_stage(mov_local, keep, ref, start, method=fine, coarse_method=coarse)
     after, residuals = heights_after(mov_local, keep, ref, start, polished)
     return RegistrationResult(

@@ -117,20 +117,36 @@ def coarser_tie_cell(scale: float, moving: np.ndarray, ref: Reference,
 
 
 def similarity_search(moving: np.ndarray, ref: Reference, *, tie_cell: float, method: str,
-                      free_tilt: bool) -> tuple[CoarseResult, float]:
+                      free_tilt: bool, scale_range: tuple[float, float] | None = None
+                      ) -> tuple[CoarseResult, float]:
     """:func:`~tiereg.coarse.similarity.register_similarity`, searched again with a coarser tie
     cell while its answer lies at the smallest scale the tie cell lets the reference be searched
-    at (the block may be smaller still); the result and the tie cell it was found with."""
-    result = register_similarity(moving, ref, tie_cell=tie_cell, method=method,
-                                 free_tilt=free_tilt)
+    at (the block may be smaller still); the result and the tie cell it was found with.
+    ``scale_range``: where the scale is known to lie (:func:`searched_scales`)."""
+    def once(cell: float) -> CoarseResult:
+        return register_similarity(moving, ref, tie_cell=cell, method=method,
+                                   free_tilt=free_tilt,
+                                   scales=searched_scales(moving, ref, cell, scale_range))
+
+    result = once(tie_cell)
     while (coarser := coarser_tie_cell(result.T_ref_mov.scale, moving, ref,
                                        tie_cell)) is not None:
         log.info("answer at the smallest scale searched: tie cell %.4g -> %.4g", tie_cell,
                  coarser)
         tie_cell = coarser
-        result = register_similarity(moving, ref, tie_cell=tie_cell, method=method,
-                                     free_tilt=free_tilt)
+        result = once(tie_cell)
     return result, tie_cell
+
+
+def searched_scales(moving: np.ndarray, ref: Reference, tie_cell: float,
+                    scale_range: tuple[float, float] | None) -> ScaleRange | None:
+    """The scales the similarity search looks at: where the block can be found at all
+    (:meth:`ScaleRange.of`), within ``scale_range`` where the caller knows it (None: the
+    default, all of them)."""
+    if scale_range is None:
+        return None
+    found = ScaleRange.of(moving, ref, tie_cell)
+    return ScaleRange(max(found.lowest, scale_range[0]), min(found.highest, scale_range[1]))
 
 
 def no_coarse_stage(mov_local: np.ndarray, ref: Reference, frames: Frames, *,
@@ -145,7 +161,8 @@ def no_coarse_stage(mov_local: np.ndarray, ref: Reference, frames: Frames, *,
 
 def coarse_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, frames: Frames, *,
                  method: str, tie_cell: float, cell_size: float | None,
-                 free_tilt: bool) -> CoarseStage:
+                 free_tilt: bool, scale_range: tuple[float, float] | None = None
+                 ) -> CoarseStage:
     """The coarse registration by ``method`` (``"pomf"``: translation only, judged by its own
     peaks; else a similarity, judged by the refined fits of the answer and its rivals,
     :func:`~tiereg.verdict.judge_refined`)."""
@@ -154,7 +171,8 @@ def coarse_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, frames
         result = register_translation(mov_local[keep], grid, reference_fine=ref.base)
     else:  # search, auto and the Fourier-Mellin forms
         result, tie_cell = similarity_search(mov_local[keep], ref, tie_cell=tie_cell,
-                                             method=method, free_tilt=free_tilt)
+                                             method=method, free_tilt=free_tilt,
+                                             scale_range=scale_range)
     T_local = result.T_ref_mov
     log.info("coarse (%s): scale %.6g, heading %.2f deg, %s (%.1f s)", method,
              T_local.scale, math.degrees(T_local.parameters().kappa) % 360.0,
