@@ -119,16 +119,29 @@ def grid_tile(tile: Tile, spec: GridSpec, *, stats: Sequence[str], origin: np.nd
             x -= origin[0]
             y -= origin[1]
             z -= origin[2]
-        row, col, inside = spec.cell_rowcol(x, y)  # the whole grid's arithmetic
+        row, col = spec.cell_coordinates(x, y)  # the whole grid's arithmetic
+        # the window's edges are whole cells, so comparing the fractional coordinates with
+        # them finds the cells that flooring first would
+        ok = (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
         if kept is not None:
-            inside &= kept
-        ok = inside & (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
-        lost += int(np.count_nonzero(inside)) - int(np.count_nonzero(ok))
-        acc.add_cells((row[ok] - r0) * width + (col[ok] - c0), z[ok])
+            ok &= kept
+        if int(np.count_nonzero(ok)) < (len(z) if kept is None else np.count_nonzero(kept)):
+            lost += _inside_but_not_in(spec, row, col, ok if kept is None else ok | ~kept)
+        acc.add_cells((row[ok].astype(np.int64) - r0) * width
+                      + (col[ok].astype(np.int64) - c0), z[ok])
     if lost:
         raise InputError(f"{tile.path}: {lost} points lie outside the tile's header bounds; the "
                          "header is wrong - re-export the tile")
     return PartialGrid(r0, c0, acc.result(), acc.points_seen)
+
+
+def _inside_but_not_in(spec: GridSpec, row: np.ndarray, col: np.ndarray,
+                       taken: np.ndarray) -> int:
+    """How many of the points not ``taken`` (outside their tile's window) lie inside the grid:
+    outside their tile's header bounds, which the window holds (those outside the grid too
+    are not gridded, as in one process)."""
+    r, c = row[~taken], col[~taken]
+    return int(np.count_nonzero((r >= 0) & (r < spec.shape[0]) & (c >= 0) & (c < spec.shape[1])))
 
 
 class GridMerger:

@@ -92,13 +92,17 @@ class GridSpec:
         c = self.cell_size
         return (self.y0 - np.asarray(y)) / c - 0.5, (np.asarray(x) - self.x0) / c - 0.5
 
+    def cell_coordinates(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) of positions in cells from the grid's corner, fractional: a position
+        lies in the cell ``(floor(row), floor(col))`` (the arithmetic every gridding shares)."""
+        inv = 1.0 / self.cell_size
+        return (self.y0 - np.asarray(y)) * inv, (np.asarray(x) - self.x0) * inv
+
     def cell_rowcol(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                                  np.ndarray]:
         """Integer (row, col) of the cell holding each position and whether it falls inside
         the grid (outside, the row and column are meaningless)."""
-        inv = 1.0 / self.cell_size
-        col = (np.asarray(x) - self.x0) * inv
-        row = (self.y0 - np.asarray(y)) * inv
+        row, col = self.cell_coordinates(x, y)
         inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
         # truncation equals floor for the non-negative values inside
         return row.astype(np.int64), col.astype(np.int64), inside
