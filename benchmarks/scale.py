@@ -65,6 +65,23 @@ def decode_baseline(paths: list[str], processes: int) -> dict:
             "load": os.getloadavg()[0]}
 
 
+def decode_on_cluster(paths: list[str], workers: int) -> dict:
+    """:func:`_decode_tile` a tile a task on a local Dask cluster: what the cluster's harness
+    costs decoding alone (against :func:`decode_baseline`'s process pool)."""
+    from tiereg.distributed import cluster
+
+    with cluster(workers=workers) as client:
+        client.run(lambda: None)
+        c0 = sum(client.run(_cpu_s).values())
+        t0 = time.perf_counter()
+        out = client.gather(client.map(_decode_tile, paths, pure=False))
+        wall = time.perf_counter() - t0
+        cpu = sum(client.run(_cpu_s).values()) - c0
+    return {"workers": workers, "points": sum(n for n, _ in out), "seconds": wall,
+            "worker_cpu_s": cpu, "task_cpu_s": sum(c for _, c in out),
+            "load": os.getloadavg()[0]}
+
+
 def grid_run(paths: list[str], workers: int, base_cell: float) -> dict:
     from distributed import get_task_stream
 
@@ -137,6 +154,7 @@ def phase_grid(args, out: dict) -> None:
     g = out.setdefault("grid", {})
     runs = {
         "decode_all_2proc": lambda: decode_baseline(paths, 2),
+        "decode_all_2w": lambda: decode_on_cluster(paths, 2),
         "grid_all_2w": lambda: grid_run(paths, 2, base),
         "grid_all_1w": lambda: grid_run(paths, 1, base),
         "grid_50M_2w": lambda: grid_run(part, 2, base),
@@ -214,8 +232,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[2], help="mosaic phase")
     ap.add_argument("--blocks", choices=("dev", "held-out", "all"), default="all")
     ap.add_argument("--runs", nargs="+", help="grid phase: these runs only (decode_all_2proc, "
-                    "grid_all_2w, grid_all_1w, grid_50M_2w, decode_50M_2proc, scheduler, "
-                    "task_cpu_16_tiles)")
+                    "decode_all_2w, grid_all_2w, grid_all_1w, grid_50M_2w, decode_50M_2proc, "
+                    "scheduler, task_cpu_16_tiles)")
     args = ap.parse_args()
     import scale_data
 

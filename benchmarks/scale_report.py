@@ -15,6 +15,7 @@ def _grid_lines(g: dict) -> list[str]:
            "| run | tiles | points | wall s | CPU s | peak RSS per worker MB | load avg |",
            "| --- | --- | --- | --- | --- | --- | --- |"]
     for key, label in (("decode_all_2proc", "decode only, laspy/lazrs, 2 processes"),
+                       ("decode_all_2w", "decode only, a tile a task, 2 Dask workers"),
                        ("grid_all_1w", "gridding, 1 worker"), ("grid_all_2w", "gridding, 2 workers"),
                        ("decode_50M_2proc", "decode only, 80 tiles, 2 processes"),
                        ("grid_50M_2w", "gridding 80 tiles, 2 workers")):

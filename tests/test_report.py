@@ -45,11 +45,13 @@ def test_report_writes_maps_tables_and_a_self_contained_page(report, demo_result
     assert len(rows) == 1 + len(demo_result.residuals.xyz)
     dz = np.array([float(r.split(",")[4]) for r in rows[1:] if r.split(",")[4]])
     assert np.median(dz) == pytest.approx(demo_result.quality.median_dz, abs=1e-4)
-    # the correlation surface peaks within a cell of the answer
-    from tiereg.report import WINDOW_CELLS, _correlation_window
+    # the correlation picture's surface peaks within a cell of the answer
+    from tiereg.coarse.scoring import score_around
+    from tiereg.report import PICTURE_CELLS
 
-    w = _correlation_window(demo_result)
-    peak = np.array(np.unravel_index(int(np.argmax(w)), w.shape)) - WINDOW_CELLS
+    placed = demo_result.residuals.xyz - demo_result.reference.origin
+    w = score_around(placed, demo_result.reference, demo_result.cell_size, cells=PICTURE_CELLS)
+    peak = np.array(np.unravel_index(int(np.argmax(w)), w.shape)) - PICTURE_CELLS
     assert np.abs(peak).max() <= 1
     # the blunders the demo planted (2 %, tens of feet) are flagged
     assert 0.01 < demo_result.residuals.blunder.mean() < 0.06
