@@ -32,7 +32,8 @@ def report(demo_result, tmp_path_factory):
 def test_report_writes_maps_tables_and_a_self_contained_page(report, demo_result):
     out = report.directory
     for name in ("report.html", "dz_before.png", "dz_after.png", "residual_histogram.png",
-                 "coarse_candidates.png", "coarse_correlation.png", "dz_before.tif", "dz_after.tif", "residuals.csv",
+                 "coarse_candidates.png", "coarse_correlation.png", "dz_before.tif",
+                 "dz_after.tif", "residuals.csv",
                  "control_points.csv", "control_points.txt", "control_points_colmap.txt"):
         assert (out / name).stat().st_size > 0, name
     page = (out / "report.html").read_text()
