@@ -98,20 +98,13 @@ class GridSpec:
         inv = 1.0 / self.cell_size
         return (self.y0 - np.asarray(y)) * inv, (np.asarray(x) - self.x0) * inv
 
-    def cell_rowcol(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                 np.ndarray]:
-        """Integer (row, col) of the cell holding each position and whether it falls inside
-        the grid (outside, the row and column are meaningless)."""
-        row, col = self.cell_coordinates(x, y)
-        inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
-        # truncation equals floor for the non-negative values inside
-        return row.astype(np.int64), col.astype(np.int64), inside
-
     def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat cell index of each position and whether it falls inside the grid."""
-        row, col, inside = self.cell_rowcol(x, y)
-        idx = row * self.shape[1] + col
-        idx[~inside] = 0  # outside cells get 0
+        row, col = self.cell_coordinates(x, y)
+        inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
+        # truncation equals floor for the non-negative values inside; outside cells get 0
+        idx = row.astype(np.int64) * self.shape[1] + col.astype(np.int64)
+        idx[~inside] = 0
         return idx, inside
 
 
@@ -188,11 +181,10 @@ class GridAccumulator:
             z = xyz[:, 2]
         self._add_cells(idx, z)
 
-    def add_cells(self, idx: np.ndarray, z: np.ndarray, *, seen: int | None = None) -> None:
+    def add_cells(self, idx: np.ndarray, z: np.ndarray) -> None:
         """Add heights ``z`` at flat cell indices ``idx`` found by the caller (each inside the
-        grid, each ``z`` finite); ``seen``: the points the chunk held before the caller's
-        selection (default ``len(z)``)."""
-        self.points_seen += len(z) if seen is None else seen
+        grid, each ``z`` finite)."""
+        self.points_seen += len(z)
         self._add_cells(np.asarray(idx, dtype=np.int64), np.asarray(z, dtype=np.float64))
 
     def _add_cells(self, idx: np.ndarray, z: np.ndarray) -> None:
