@@ -118,25 +118,20 @@ def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = Non
     ``box`` are kept (any tile); with ``resolution``, a COPC tile gives only the octree levels
     down to that point spacing (a coarse grid's share of the points; other tiles give all).
     """
+    if not (tile.copc and (box is not None or resolution is not None)):
+        yield from _filtered(_records(tile, chunk_size), keep, box)
+        return
     import laspy
 
-    path = Path(tile.path)
     try:
-        if tile.copc and (box is not None or resolution is not None):
-            with laspy.CopcReader.open(path, decompression_selection=_selection()) as reader:
-                bounds = None if box is None else laspy.copc.Bounds(  # z: the whole tile
-                    np.array([box[0], box[1], tile.mins[2] - 1.0]),
-                    np.array([box[2], box[3], tile.maxs[2] + 1.0]))
-                records = reader.query(bounds=bounds, resolution=resolution)
-                chunks: Iterator = iter([records])
-                yield from _filtered(chunks, keep, box)
-            return
-        with laspy.open(path, mode="r", laz_backend=_one_thread_backend(),
-                        decompression_selection=_selection()) as reader:
-            yield from _filtered(reader.chunk_iterator(chunk_size), keep, box)
+        with laspy.CopcReader.open(tile.path, decompression_selection=_selection()) as reader:
+            bounds = None if box is None else laspy.copc.Bounds(  # z: the whole tile
+                np.array([box[0], box[1], tile.mins[2] - 1.0]),
+                np.array([box[2], box[3], tile.maxs[2] + 1.0]))
+            records = reader.query(bounds=bounds, resolution=resolution)
+            yield from _filtered(iter([records]), keep, box)
     except read_errors() as exc:
-        raise FormatError(f"{path}: reading the points failed ({short_error(exc)}); the file is "
-                          "corrupt or truncated - re-export or re-download it") from None
+        raise _read_failed(tile, exc) from None
 
 
 def tile_columns(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = None,
@@ -145,20 +140,27 @@ def tile_columns(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = No
     """All the points of one tile as ``(x, y, z, kept)`` columns, chunk by chunk as
     :func:`tile_chunks` reads them (fresh arrays: change them in place); ``kept``: what ``keep``
     keeps (None without), left to the caller to apply with its own selection."""
+    for records in _records(tile, chunk_size):
+        kept = None if keep is None else np.asarray(keep(records), dtype=bool)
+        yield (np.asarray(records.x, dtype=np.float64), np.asarray(records.y, dtype=np.float64),
+               np.asarray(records.z, dtype=np.float64), kept)
+
+
+def _records(tile: Tile, chunk_size: int) -> Iterator:
+    """The laspy record chunks of a whole tile, decoding only what gridding reads."""
     import laspy
 
-    path = Path(tile.path)
     try:
-        with laspy.open(path, mode="r", laz_backend=_one_thread_backend(),
+        with laspy.open(tile.path, mode="r", laz_backend=_one_thread_backend(),
                         decompression_selection=_selection()) as reader:
-            for records in reader.chunk_iterator(chunk_size):
-                kept = None if keep is None else np.asarray(keep(records), dtype=bool)
-                yield (np.asarray(records.x, dtype=np.float64),
-                       np.asarray(records.y, dtype=np.float64),
-                       np.asarray(records.z, dtype=np.float64), kept)
+            yield from reader.chunk_iterator(chunk_size)
     except read_errors() as exc:
-        raise FormatError(f"{path}: reading the points failed ({short_error(exc)}); the file is "
-                          "corrupt or truncated - re-export or re-download it") from None
+        raise _read_failed(tile, exc) from None
+
+
+def _read_failed(tile: Tile, exc: BaseException) -> FormatError:
+    return FormatError(f"{Path(tile.path)}: reading the points failed ({short_error(exc)}); the "
+                       "file is corrupt or truncated - re-export or re-download it")
 
 
 def _filtered(chunks, keep, box: Box | None) -> Iterator[np.ndarray]:

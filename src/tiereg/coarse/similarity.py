@@ -158,7 +158,7 @@ def register_similarity(
                                      scales=scales, heights=heights)
         elif method == "moments":
             found, moments = moments_search(moving_xyz, reference, tie_cell=tie_cell,
-                                          scales=scales, heights=heights)
+                                            scales=scales, heights=heights)
         else:
             # level, unscaled data are common: the identity is always among the hypotheses
             found = search(moving_xyz, reference, tie_cell=tie_cell, scales=scales,
