@@ -1,11 +1,14 @@
 """Coarse-registration benchmark: tiereg's coarse methods and peers on simulated scenes.
 
-The protocol follows the coarse-registration literature's (the share of heading x scale parameter pairs a method
-recovers) on more varied ground: five kinds of synthetic world and real surfaces, any heading,
-scales 0.25-4 (feet vs metres included), any shift, partial overlap down to 30 % of the block, and
-negative cases whose tie points come from a world the lidar never saw.
+The protocol follows the coarse-registration literature's (the share of heading x scale
+parameter pairs a method recovers) on more varied ground: five kinds of synthetic world and real
+surfaces, any heading, scales 0.25-4 (feet vs metres included), any shift, partial overlap down
+to 30 % of the block, and negative cases whose tie points come from a world the lidar never saw.
+Case numbers split the cases: even ones are the development half (settings are chosen on them),
+odd ones the held-out half (only reported).
 
     python benchmarks/coarse.py            # full run -> benchmarks/results/coarse.{md,json,png}
+    python benchmarks/coarse.py --methods auto --no-peers --half heldout   # -> work/heldout/
     python benchmarks/coarse.py --quick    # a few cases -> benchmarks/work/ (development)
     python benchmarks/coarse.py --timing   # auto (as `tiereg overlap`) on the synthetic scenes,
                                            # one case at a time on all cores
@@ -225,14 +228,16 @@ def run_open3d(scene, ref: Reference, cell: float) -> tuple[Transform, float, st
 # ---------------------------------------------------------------------------------------- run
 def run(quick: bool, with_open3d: bool, workers: int,
         methods: tuple[str, ...] = TIEREG_METHODS, *, scenes: tuple[str, ...] | None = None,
-        peers: bool = True, retime: bool = False) -> tuple[list[Outcome], dict]:
+        peers: bool = True, retime: bool = False, half: str | None = None
+        ) -> tuple[list[Outcome], dict]:
     """All scenes (or those named), ``workers`` at a time (each scene in its own process).
     ``retime``: probe the machine's speed before each run and time again the runs the host
-    took time from (:func:`timed_tiereg`)."""
+    took time from (:func:`timed_tiereg`). ``half``: ``"dev"`` (even case numbers) or
+    ``"heldout"`` (odd) only."""
     WORK.mkdir(parents=True, exist_ok=True)
     specs = scene_specs(quick)  # also fills LOOKALIKE_KIND, which the workers need passed
     jobs = [(i, name, spec, quick, with_open3d and peers, LOOKALIKE_KIND.get(name, spec.kind),
-             methods, peers, retime)
+             methods, peers, retime, half)
             for i, (name, spec) in enumerate(specs.items()) if scenes is None or name in scenes]
     if workers > 1:
         from multiprocessing import get_context
@@ -247,7 +252,7 @@ def run(quick: bool, with_open3d: bool, workers: int,
 
 
 def run_scene(job) -> tuple[list[Outcome], dict]:
-    index, name, spec, quick, with_open3d, lookalike, methods, peers, retime = job
+    index, name, spec, quick, with_open3d, lookalike, methods, peers, retime, half = job
     rng = np.random.default_rng([2026, index])
     outcomes: list[Outcome] = []
     meta: dict = {"scenes": {}}
@@ -266,6 +271,8 @@ def run_scene(job) -> tuple[list[Outcome], dict]:
                             "tie_points": len(base_scene.moving),
                             "setup_s": round(time.perf_counter() - t0, 1)}
     cases = make_cases(name, 1000 * index, rng, quick)
+    if half is not None:  # the development half: even case numbers; held out: odd ones
+        cases = [c for c in cases if (c.index % 2 == 0) == (half == "dev")]
     for case in cases:
         case_spec = replace(spec, hidden=case.hidden, overlap=case.overlap)
         if case.negative:  # tie points from a synthetic world of the same character
@@ -349,7 +356,8 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
         "# Coarse-registration benchmark", "",
         f"- date: {meta['date']}; "
         f"machine: {platform.machine()}, Python {platform.python_version()}; "
-        f"total run time {seconds / 60:.1f} min",
+        f"total run time {seconds / 60:.1f} min; cases: {meta.get('selection', 'both halves')} "
+        "(development half: even case numbers, held-out half: odd ones)",
         "- scenes: " + ", ".join(f"{k} ({v['tie_points']} tie points, "
                                  f"{v['lidar_points']:,} lidar points, cell {v['cell']:g} m)"
                                  for k, v in meta["scenes"].items()),
@@ -545,6 +553,11 @@ def main() -> None:
     parser.add_argument("--timing", action="store_true",
                         help="auto alone on the synthetic scenes, one case at a time on all "
                              "cores -> results/coarse-timing.md")
+    parser.add_argument("--half", choices=("dev", "heldout"),
+                        help="the development half (even case numbers) or the held-out half "
+                             "(odd) only, results to work/")
+    parser.add_argument("--no-peers", action="store_true",
+                        help="tiereg's methods only, results to work/")
     parser.add_argument("--keep-others", action="store_true",
                         help="methods not run this time keep their outcomes from the last "
                              "results (after a change that touches only the methods run)")
@@ -561,11 +574,15 @@ def main() -> None:
         print(RESULTS / "coarse-timing.md")
         return
     outcomes, meta = run(args.quick, with_open3d=not args.no_open3d, workers=args.workers,
-                         methods=tuple(args.methods.split(",")))
+                         methods=tuple(args.methods.split(",")), peers=not args.no_peers,
+                         half=args.half)
     if args.keep_others:
         outcomes, meta["kept"] = keep_others(outcomes, RESULTS / "coarse.json")
-    write_report(outcomes, meta, WORK if args.quick else RESULTS, time.perf_counter() - t0)
-    print((WORK if args.quick else RESULTS) / "coarse.md")
+    partial = args.quick or args.half or args.no_peers
+    meta["selection"] = args.half or "both halves"
+    out_dir = WORK / (args.half or "all") if partial else RESULTS
+    write_report(outcomes, meta, out_dir, time.perf_counter() - t0)
+    print(out_dir / "coarse.md")
 
 
 if __name__ == "__main__":

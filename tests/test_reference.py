@@ -106,11 +106,24 @@ def test_a_prepared_reference_serves_many_registrations():
         assert result.confident and np.hypot(*err[0, :2]) < 0.1 * result.cell_size
 
 
-def test_reference_open_grids_the_file_once_as_prepare_reference_does():
+def test_reference_open_reads_headers_now_and_grids_once_on_first_use(monkeypatch):
+    import tiereg.reference as reference_module
+
     path = Path(__file__).parent / "data" / "autzen-bmx-2010.las"
+    passes = []
+    real_grid = reference_module._grid
+    monkeypatch.setattr(reference_module, "_grid",
+                        lambda *args: passes.append(1) or real_grid(*args))
     ref = Reference.open(str(path))
+    assert passes == []  # the header alone: where the points lie and the base grid's cells
     same = prepare_reference(open_points(str(path)))
+    n = len(passes)
     assert ref.source_args == (str(path.resolve()),)  # where it came from, for RESULT.json
     assert np.array_equal(ref.origin, same.origin)
-    assert ref.base_cell == same.base_cell
+    assert ref.base_cell == same.base_cell  # the first use grids the points
+    assert len(passes) == 2 * n
     assert np.array_equal(ref.base["mean"], same.base["mean"], equal_nan=True)
+    assert ref.first_returns_only == same.first_returns_only
+    ref.grid(4 * ref.base_cell)
+    ref.surface()
+    assert len(passes) == 2 * n  # and never again

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from tiereg.coarse.refine import EDGE_MARGIN_CELLS, MIN_KEPT, fit_to_surface, fit_to_surface_many
@@ -32,6 +33,20 @@ def test_sampler_matches_scipy_bilinear_and_nearest_validity():
     assert np.abs(z - z_ref)[inside].max() < 1e-12
     assert np.array_equal(ok, ok_ref)
     assert 0.5 < ok.mean() < 0.9  # the test covers both answers
+
+
+def test_roughness_is_half_the_range_of_the_nearest_cells_neighbourhood():
+    rng = np.random.default_rng(3)
+    sampler = SurfaceSampler.from_grid(_grid(rng, shape=(12, 15)))
+    x, y = rng.uniform(95, 135, 400), rng.uniform(172, 205, 400)
+    got = sampler.roughness(x, y)
+    rows, cols = sampler.grid.spec.rowcol(x, y)
+    v = sampler.values
+    for k in range(len(x)):  # the slow, obvious reference: the 3 x 3 cells, clamped at edges
+        r = min(max(int(round(rows[k])), 0), v.shape[0] - 1)
+        c = min(max(int(round(cols[k])), 0), v.shape[1] - 1)
+        block = v[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2]
+        assert got[k] == pytest.approx(0.5 * (block.max() - block.min()), abs=1e-12)
 
 
 def _smooth_block(rng, shape=(400, 400), cell=2.0):

@@ -5,41 +5,74 @@ from __future__ import annotations
 import numpy as np
 
 from tiereg.transform import Transform
-from tiereg.verdict import MAX_UNEXPLAINED, NOISE_MULTIPLE, RefinedPose, verdict_of
+from tiereg.verdict import MAX_SMOOTH_SPREAD, NOISE_MULTIPLE, RefinedPose, verdict_of
+
+RELIEF_M = 30.0  # the NMAD of the surface heights under every test pose
 
 
-def _pose(dz_spread_m: float, *, n: int = 800, on: float = 1.0, seed: int = 0) -> RefinedPose:
+def _pose(dz_spread_m: float, *, n: int = 800, on: float = 1.0, seed: int = 0,
+          rough_share: float = 0.0, rough_spread_m: float = 0.0) -> RefinedPose:
     """A converged pose over a surface of 30 m relief (NMAD) whose height residuals have the
-    given NMAD, ``on`` of its tie points on the surface."""
+    given NMAD where the surface is smooth (roughness 0.1 m), ``on`` of its tie points on the
+    surface; ``rough_share`` of them land where the surface is rough (10 m within a cell: roof
+    edges, trees) and leave residuals of ``rough_spread_m`` there."""
     rng = np.random.default_rng(seed)
-    surface_z = rng.normal(100.0, 30.0, n)
+    surface_z = rng.normal(100.0, RELIEF_M, n)
     dz = rng.normal(0.0, dz_spread_m, n)
+    roughness = np.full(n, 0.1)
+    rough = rng.random(n) < rough_share
+    dz[rough] = rng.normal(0.0, rough_spread_m, rough.sum())
+    roughness[rough] = 10.0
     off = rng.random(n) > on
     dz[off], surface_z[off] = np.nan, np.nan
-    return RefinedPose(Transform.identity(), Transform.identity(), True, 0.1, dz, surface_z)
+    return RefinedPose(Transform.identity(), Transform.identity(), True, 0.1, dz, surface_z,
+                       roughness)
+
+
+def _tightest(*poses: RefinedPose) -> float:
+    return min(p.noise for p in poses)
 
 
 def test_an_answer_that_explains_its_heights_and_stands_out_is_confident():
     poses = (_pose(1.0), _pose(8.0, seed=1))
-    verdict = verdict_of(poses, 0, (700.0, 200.0), (np.nan, 9.0), poses[0].unexplained)
+    verdict = verdict_of(poses, 0, (700.0, 200.0), (np.nan, 9.0), _tightest(*poses))
     assert verdict.confident and not verdict.reasons
     assert verdict.confidence > 0.5
 
 
+def test_residuals_where_the_surface_is_rough_do_not_count_against_an_answer():
+    # three quarters of the tie points at edges and in trees, residuals of 12 m there: the
+    # residual spread over the relief is far above what smooth ground would leave, yet on the
+    # smooth quarter the tie points sit within their noise of the surface
+    answer = _pose(0.5, rough_share=0.75, rough_spread_m=12.0, seed=4)
+    assert answer.unexplained > 0.25  # the whole block's spread is a large part of the relief
+    assert answer.smooth_unexplained < 0.05
+    poses = (answer, _pose(20.0, seed=5))
+    verdict = verdict_of(poses, 0, (600.0, 150.0), (np.nan, 8.0), _tightest(*poses))
+    assert verdict.confident, verdict.reasons
+
+
 def test_an_answer_far_looser_than_another_pose_is_not_confident():
     # the answer explains the most tie points, but a pose on a fifth of the block fits them
-    # five times more tightly: the evidence is divided, whatever the counts say
+    # five times more tightly on smooth ground: the evidence is divided, whatever the counts say
     tight, loose = _pose(1.5, on=0.2, seed=2), _pose(8.0, seed=3)
-    assert 0.2 < loose.unexplained < MAX_UNEXPLAINED  # it would pass on its own
-    noise = tight.unexplained
-    assert loose.unexplained > NOISE_MULTIPLE * noise
+    assert 0.2 < loose.smooth_unexplained < MAX_SMOOTH_SPREAD  # it would pass on its own
+    noise = _tightest(tight, loose)
+    assert loose.noise > NOISE_MULTIPLE * noise
     verdict = verdict_of((tight, loose), 1, (100.0, 600.0), (9.0, np.nan), noise)
     assert not verdict.confident and verdict.confidence < 0.5
     assert len(verdict.reasons) == 1 and "far more tightly" in verdict.reasons[0]
 
 
-def test_an_answer_that_leaves_much_of_the_relief_unexplained_is_not_confident():
-    poses = (_pose(12.0), _pose(20.0, seed=1))  # 0.4 of the relief's spread left
-    verdict = verdict_of(poses, 0, (500.0, 100.0), (np.nan, 9.0), poses[0].unexplained)
-    assert poses[0].unexplained > MAX_UNEXPLAINED and not verdict.confident
+def test_an_answer_that_leaves_the_smooth_grounds_heights_unexplained_is_not_confident():
+    poses = (_pose(18.0), _pose(30.0, seed=1))  # 0.6 of the relief's spread left
+    verdict = verdict_of(poses, 0, (500.0, 100.0), (np.nan, 9.0), _tightest(*poses))
+    assert poses[0].smooth_unexplained > MAX_SMOOTH_SPREAD and not verdict.confident
     assert any("disagree with the reference surface" in r for r in verdict.reasons)
+
+
+def test_too_few_tie_points_on_the_surface_measure_no_noise():
+    pose = _pose(1.0, n=30)
+    assert pose.smooth_spread == np.inf
+    verdict = verdict_of((pose, _pose(8.0, seed=1)), 0, (30.0, 5.0), (np.nan, 9.0), 1.0)
+    assert not verdict.confident

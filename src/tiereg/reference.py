@@ -16,7 +16,7 @@ import math
 import os
 import threading
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,28 +45,54 @@ class Reference:
 
     source: PointSource
     origin: np.ndarray = field(repr=False)
-    base: Grid = field(repr=False)
-    first_returns_only: bool
+    _base: Grid | None = field(repr=False)  # None until first use (:meth:`open`)
+    _first_returns_only: bool
     _cache: dict[int, Grid] = field(default_factory=dict, repr=False, compare=False)
     _surface: list[SurfaceSampler] = field(default_factory=list, repr=False, compare=False)
-    # the coarse stage's threads ask for grids side by side
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    # the coarse stage's threads ask for grids side by side; reentrant: a grid asks for the base
+    _lock: threading.RLock = field(default_factory=threading.RLock, repr=False, compare=False)
     source_args: tuple[str, ...] = ()  # the paths it was read from, when known
+    _pending: tuple | None = field(default=None, repr=False, compare=False)  # (spec, progress)
+    _made: list = field(default_factory=list, repr=False, compare=False)  # [base, first only]
 
     @classmethod
     def open(cls, paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], *,
              format: str | None = None, base_cell: float | None = None,
              progress: ProgressFactory | None = None) -> Reference:
         """The reference at ``paths`` (a LAS/LAZ/COPC file, several tiles, a folder or a glob
-        of them, or a GeoTIFF DSM) read and gridded once (:func:`prepare_reference`): given to
-        :func:`tiereg.register`, :func:`tiereg.evaluate` or ``check_overlap`` in place of the
-        paths, it serves many blocks without reading the lidar again."""
+        of them, or a GeoTIFF DSM): its headers read now, its points gridded on first use
+        (as :func:`prepare_reference` grids them), once. Given to :func:`tiereg.register`,
+        :func:`tiereg.evaluate` or ``check_overlap`` in place of the paths, it serves many blocks
+        without reading the lidar again."""
         from .io import open_points
 
-        ref = prepare_reference(open_points(paths, format=format), base_cell=base_cell,
-                                progress=progress)
+        source = open_points(paths, format=format)
+        lo, hi = _checked_bounds(source)
+        origin, spec = reference_spec(lo, hi, base_cell or base_cell_for(source))
         given = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
-        return replace(ref, source_args=tuple(os.path.abspath(os.fspath(p)) for p in given))
+        return cls(source, origin, None, True,
+                   source_args=tuple(os.path.abspath(os.fspath(p)) for p in given),
+                   _pending=(spec, progress or no_progress))
+
+    @property
+    def base(self) -> Grid:
+        """The base grid (made on first use where :meth:`open` made the reference)."""
+        if self._base is not None:
+            return self._base
+        with self._lock:
+            if not self._made:
+                spec, progress = self._pending
+                self._made.extend(_grid_first_returns(self.source, spec, self.origin,
+                                                      self._first_returns_only, progress))
+            return self._made[0]
+
+    @property
+    def first_returns_only(self) -> bool:
+        """Whether the base grid holds first returns only (the file records returns)."""
+        if self._base is not None:
+            return self._first_returns_only
+        _ = self.base  # decided when the points are gridded
+        return self._made[1]
 
     @property
     def base_cell(self) -> float:
@@ -242,7 +268,15 @@ def prepare_reference(
 ) -> Reference:
     """Grid ``source`` once at ``base_cell`` (default :func:`base_cell_for`; one streaming pass,
     memory follows the grid, at most :data:`MAX_BASE_SIDE` cells a side)."""
-    progress = progress or no_progress
+    lo, hi = _checked_bounds(source)
+    origin, spec = reference_spec(lo, hi, base_cell or base_cell_for(source))
+    grid, use_first = _grid_first_returns(source, spec, origin, first_returns,
+                                         progress or no_progress)
+    return Reference(source, origin, grid, use_first)
+
+
+def _checked_bounds(source: PointSource) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's bounds from its header(s), refused where it is empty or corrupt."""
     info = source.info
     if info.count == 0:
         raise InputError(f"{info.path}: the reference point set is empty; "
@@ -252,16 +286,21 @@ def prepare_reference(
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise InputError(f"{info.path}: the reference bounds are not finite; the file is "
                          "corrupt - re-export it")
-    origin, spec = reference_spec(lo, hi, base_cell or base_cell_for(source))
+    return lo, hi
+
+
+def _grid_first_returns(source: PointSource, spec: GridSpec, origin: np.ndarray,
+                        first_returns: bool, progress: ProgressFactory) -> tuple[Grid, bool]:
+    """The base grid of first returns where the file records returns, else of all points."""
     use_first = first_returns and isinstance(source, LasSource)
     grid = _grid(source, spec, origin, use_first, progress)
     if use_first and not grid.mask.any():  # no return numbers recorded: use all points
         use_first = False
         grid = _grid(source, spec, origin, False, progress)
     if not grid.mask.any():
-        raise InputError(f"{info.path}: no reference point falls inside its own header bounds; "
-                         "the header is wrong - re-export the file")
-    return Reference(source, origin, grid, use_first)
+        raise InputError(f"{source.info.path}: no reference point falls inside its own header "
+                         "bounds; the header is wrong - re-export the file")
+    return grid, use_first
 
 
 def _grid(source: PointSource, spec: GridSpec, origin: np.ndarray, first_only: bool,

@@ -24,6 +24,7 @@ class SurfaceSampler:
     values: np.ndarray
     valid: np.ndarray
     _inner: dict = field(default_factory=dict, repr=False, compare=False)
+    _half_range: list = field(default_factory=list, repr=False, compare=False)
 
     @classmethod
     def from_grid(cls, grid: Grid, *, stat: str = "mean") -> SurfaceSampler:
@@ -38,6 +39,20 @@ class SurfaceSampler:
             inner = ndimage.binary_erosion(self.valid, iterations=margin_cells)
             self._inner[margin_cells] = inner if inner.any() else self.valid
         return self._inner[margin_cells]
+
+    def roughness(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Half the range of the surface's heights over the 3 x 3 cells around each position's
+        nearest cell: how far the surface rises or falls within about a cell, the part of a
+        height residual that a sub-cell shift or the grid's own blur explains (edges clamped)."""
+        if not self._half_range:
+            v = self.values
+            self._half_range.append(0.5 * (ndimage.maximum_filter(v, size=3, mode="nearest")
+                                           - ndimage.minimum_filter(v, size=3, mode="nearest")))
+        rows, cols = self.grid.spec.rowcol(x, y)
+        h, w = self.values.shape
+        rn = np.clip(np.rint(rows), 0, h - 1).astype(np.intp)
+        cn = np.clip(np.rint(cols), 0, w - 1).astype(np.intp)
+        return self._half_range[0][rn, cn]
 
     def _cell(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, ...]:
         """The bilinear cell of each position: corner indices and fractions (edges clamped)."""

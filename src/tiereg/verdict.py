@@ -5,11 +5,15 @@ and its strongest genuinely different rivals are each refined by the fine stage'
 robust 7-parameter fit of the tie points' heights to the reference surface
 (:func:`~tiereg.fine.lsm.vertical_observer`, :func:`~tiereg.fine.solver.solve_helmert`). Then:
 
-1. **Noise.** The tightest refined fit's robust spread (NMAD of its height residuals), as a
-   share of the relief under the block (NMAD of the surface heights there), is the noise the
-   data allow. A tie point is *explained* by a pose when its height lies within
-   ``NOISE_MULTIPLE`` times that share of the pose's own relief from the surface: in proportion,
-   so that a pose which shrinks the block onto a flat patch gains nothing by it.
+1. **Noise.** Each tie point's residual has two sources: the tie points' own noise, and the
+   surface's roughness where the point lands (how far the reference rises or falls within a
+   cell of it: a roof edge, a tree, a steep slope), which a sub-cell shift or the grid's blur
+   turns into metres of height. On the smoothest quarter of the block's ground the second
+   vanishes: the tightest refined fit's robust spread there (NMAD of its height residuals), in
+   the model's units (divided by the pose's scale), is the tie noise the data allow. A tie point
+   is *explained* by a pose when its height lies within ``NOISE_MULTIPLE`` times that noise (at
+   the pose's scale: a pose that shrinks the block onto a flat patch shrinks the noise with it)
+   plus the surface's roughness under it.
 2. **The answer** is the pose that explains the most independent tie points (where only the
    refined fits tell two poses apart, they decide).
 3. **Distinctness.** Against each rival, the tie points one pose explains and the other does
@@ -22,12 +26,12 @@ robust 7-parameter fit of the tie points' heights to the reference surface
 4. **Settled.** The answer's refined fit stays near it (within the fine stage's
    :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS`): a fit that runs away says the heights fit best
    elsewhere.
-5. **Explained.** Its residual spread must be a small part of the spread of the surface heights
-   under the tie points (:data:`MAX_UNEXPLAINED`): a pose that explains tie points only as well
-   as any height would is no answer, however it compares with its rivals. Nor is one whose
-   typical tie point it does not explain itself: its residual spread (in proportion to its
-   relief) more than ``NOISE_MULTIPLE`` times the tightest refined fit's. Another pose then
-   fits part of the tie points far more tightly, and the evidence is divided.
+5. **Explained.** On the smooth ground, where roughness excuses nothing, the answer's residual
+   spread must be a small part of the spread of the surface heights under the tie points
+   (:data:`MAX_SMOOTH_SPREAD`): a pose that explains tie points only as well as any height would
+   is no answer, however it compares with its rivals. Nor is one whose smooth-ground spread is
+   more than ``NOISE_MULTIPLE`` times the tightest refined fit's: another pose then fits part of
+   the tie points far more tightly, and the evidence is divided.
 
 The constants, what they guard and the benchmark figures that set them are listed in
 ``docs/constants.md``.
@@ -54,8 +58,8 @@ from .transform import Transform
 RIVALS = 3  # genuinely different poses refined beside the answer
 NOISE_MULTIPLE = 3.0  # a tie point within this many noise spreads of the surface is explained
 MIN_Z = 4.0  # the answer explains more tie points than any rival, z standard errors apart
-MAX_UNEXPLAINED = 0.35  # residual spread over the spread of the surface under the tie points
-HOPELESS_UNEXPLAINED = 0.5  # above it no pose explains the heights: the fine stage is skipped
+SMOOTH_SHARE = 0.25  # the share of a pose's tie points, the least rough, that measure its noise
+MAX_SMOOTH_SPREAD = 0.5  # smooth-ground residual spread over the spread of the surface heights
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,6 +72,7 @@ class RefinedPose:
     moved_cells: float  # how far the fit moved the block (RMS), in cells
     dz: np.ndarray = field(repr=False)  # surface height - tie point height; NaN off the surface
     surface_z: np.ndarray = field(repr=False)  # the surface's heights under the tie points
+    roughness: np.ndarray = field(repr=False)  # the surface's half-range within a cell of each
 
     @property
     def on_surface(self) -> float:
@@ -89,8 +94,28 @@ class RefinedPose:
     @property
     def unexplained(self) -> float:
         """Residual spread over the relief under the tie points: near 0 when the pose explains
-        the heights, about 1.4 when they are unrelated."""
+        the heights, about 1.4 when they are unrelated (rough ground leaves more)."""
         return self.spread / self.relief if self.relief > 0 else math.inf
+
+    @property
+    def smooth_spread(self) -> float:
+        """NMAD of the height residuals of the :data:`SMOOTH_SHARE` of the tie points on the
+        surface where it is least rough (inf with fewer than 10 of them)."""
+        on = np.isfinite(self.dz)
+        if on.sum() < 10 / SMOOTH_SHARE:
+            return math.inf
+        rough = self.roughness[on]
+        return nmad(self.dz[on][rough <= np.quantile(rough, SMOOTH_SHARE)])
+
+    @property
+    def noise(self) -> float:
+        """:attr:`smooth_spread` in the model's units (over the pose's scale)."""
+        return self.smooth_spread / self.T.scale
+
+    @property
+    def smooth_unexplained(self) -> float:
+        """:attr:`smooth_spread` over the relief under the tie points."""
+        return self.smooth_spread / self.relief if self.relief > 0 else math.inf
 
 
 @dataclass(frozen=True)
@@ -102,7 +127,7 @@ class Verdict:
     confident: bool
     confidence: float
     reasons: tuple[str, ...]
-    noise: float  # the tightest refined spread over its relief: the noise the data allow
+    noise: float  # the tightest smooth-ground spread, model units: the noise the data allow
     explained: tuple[float, ...]  # independent observations (cells) each pose explains
     z: tuple[float, ...]  # the answer against each pose (nan for itself)
 
@@ -115,13 +140,14 @@ class Verdict:
             "chosen": "coarse answer" if self.chosen == 0 else f"rival {self.chosen}",
             "confident": self.confident, "confidence": round(self.confidence, 4),
             "reasons": list(self.reasons), "noise": self.noise,
-            "explained_within": NOISE_MULTIPLE * self.noise,  # of each pose's relief
+            "explained_within": NOISE_MULTIPLE * self.noise,  # model units, plus the roughness
             "poses": [{
                 "kappa_deg": math.degrees(p.T.parameters().kappa) % 360.0,
                 "scale": p.T.parameters().scale,
                 "converged": p.converged, "moved_cells": p.moved_cells,
                 "on_surface": p.on_surface, "spread": p.spread, "relief": p.relief,
-                "unexplained": p.unexplained,
+                "unexplained": p.unexplained, "smooth_spread": p.smooth_spread,
+                "roughness": _median(p.roughness[np.isfinite(p.dz)]),
                 "explained": n, "z": None if not math.isfinite(z) else z,
             } for p, n, z in zip(self.poses, self.explained, self.z)],
         }
@@ -170,7 +196,11 @@ def _pose_at(T_start: Transform, T: Transform, moving: np.ndarray, surface: Surf
     q = T.apply(moving)
     z, ok = surface.sample(q[:, 0], q[:, 1])
     return RefinedPose(T_start, T, bool(converged), moved, np.where(ok, z - q[:, 2], np.nan),
-                       np.where(ok, z, np.nan))
+                       np.where(ok, z, np.nan), surface.roughness(q[:, 0], q[:, 1]))
+
+
+def _median(values: np.ndarray) -> float | None:
+    return float(np.median(values)) if len(values) else None
 
 
 def pose_of(h: Hypothesis, moving: np.ndarray, surface: SurfaceSampler) -> Transform:
@@ -187,20 +217,20 @@ def decide(moving: np.ndarray, reference: Reference, starts: list[Transform], *,
     surface = reference.surface()
     poses = tuple(refine(moving, surface, T, cell=cell) for T in starts)
     eligible = [i for i, p in enumerate(poses) if p.on_surface >= MIN_OVERLAP
-                and np.isfinite(p.spread)]
+                and np.isfinite(p.smooth_spread)]
     if not eligible:
         return Verdict(0, poses, False, 0.0, (
             f"no pose puts {MIN_OVERLAP:.0%} of the tie points on the reference surface",),
             math.nan, (0,) * len(poses), (math.nan,) * len(poses))
-    # the noise as a share of the relief under the block, so that a pose which shrinks the
-    # block onto a flat patch (its heights scaled down with it) explains no more than it should
-    noise = max(min(poses[i].unexplained for i in eligible), 1e-9)
-    hits = [np.abs(np.nan_to_num(p.dz, nan=np.inf)) <= NOISE_MULTIPLE * noise * p.relief
-            for p in poses]
+    # the noise in the model's units, at each pose's scale: a pose that shrinks the block onto
+    # a flat patch (its heights scaled down with it) explains no more than it should
+    noise = max(min(poses[i].noise for i in eligible), 1e-12)
+    hits = [np.abs(np.nan_to_num(p.dz, nan=np.inf))
+            <= NOISE_MULTIPLE * noise * p.T.scale + p.roughness for p in poses]
     # tie points in one cell sample the same surface: each cell is one observation
     weights = [_independence(p.T.apply(moving), cell) for p in poses]
     counts = tuple(float(np.sum(w[h])) for h, w in zip(hits, weights))
-    best = max(eligible, key=lambda i: (counts[i], -poses[i].unexplained))
+    best = max(eligible, key=lambda i: (counts[i], -poses[i].noise))
     z = tuple(math.nan if j == best else
               _mcnemar(hits[best], hits[j], weights[best], weights[j]) for j in range(len(poses)))
     return verdict_of(poses, best, counts, z, noise)
@@ -235,7 +265,7 @@ def verdict_of(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, .
                z: tuple[float, ...], noise: float) -> Verdict:
     """The verdict on refined ``poses`` with ``best`` the answer: ``counts`` the tie points
     each explains (weighted), ``z`` the answer's McNemar z against each (NaN for itself),
-    ``noise`` the tightest fit's share of the relief (the module docstring's rules)."""
+    ``noise`` the tightest smooth-ground spread, model units (the module docstring's rules)."""
     chosen = poses[best]
     rivals = [v for v in z if not math.isnan(v)]
     z_min = min(rivals) if rivals else math.nan
@@ -249,16 +279,17 @@ def verdict_of(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, .
         reasons.append(f"the refined fit runs away from the found pose (it would move the block "
                        f"{chosen.moved_cells:.1f} cells, more than {MAX_MOVE_CELLS:g}): the tie "
                        "points' heights fit best elsewhere")
-    if chosen.unexplained > MAX_UNEXPLAINED:
+    if not chosen.smooth_unexplained <= MAX_SMOOTH_SPREAD:
         reasons.append(f"the tie points' heights disagree with the reference surface at the "
-                       f"found pose (residual spread {chosen.unexplained:.2f} of the "
-                       f"surface's own, more than {MAX_UNEXPLAINED:g})")
-    elif chosen.unexplained > NOISE_MULTIPLE * noise:
+                       f"found pose, even on smooth ground (residual spread "
+                       f"{chosen.smooth_unexplained:.2f} of the surface's own, more than "
+                       f"{MAX_SMOOTH_SPREAD:g})")
+    elif chosen.noise > NOISE_MULTIPLE * noise:
         reasons.append(f"another pose fits part of the tie points far more tightly (residual "
-                       f"spread {chosen.unexplained / noise:.1f} times the tightest refined "
-                       f"fit's, more than {NOISE_MULTIPLE:g}): the evidence is divided")
+                       f"spread on smooth ground {chosen.noise / noise:.1f} times the tightest "
+                       f"refined fit's, more than {NOISE_MULTIPLE:g}): the evidence is divided")
     distinct = min(z_min / (2 * MIN_Z), 1.0) if rivals else 0.0
-    fit = 1.0 - chosen.unexplained / (2 * MAX_UNEXPLAINED)
+    fit = 1.0 - chosen.smooth_unexplained / (2 * MAX_SMOOTH_SPREAD)
     confidence = float(np.clip(min(distinct, fit), 0.0, 1.0))
     if reasons:
         confidence = min(confidence, 0.49)
