@@ -366,8 +366,8 @@ def write_report(outcomes: list[Outcome], meta: dict, out_dir: Path, seconds: fl
         "inside), random shift, "
         "overlap U(0.3, 1), small random tilt; plus one negative case per scene (tie points "
         "from another world)",
-        f"- tiereg {' and '.join(m for m in FULL_METHODS if f'tiereg {m}' in ran)} and the "
-        "image peers run on every case; the other "
+        f"- tiereg {' and '.join(m for m in FULL_METHODS if f'tiereg {m}' in ran)}"
+        f"{' and the image peers' if set(PEERS_IMAGE) & ran else ''} run on every case; the other "
         f"tiereg methods on every {SAMPLE_EVERY}rd case and the negative cases, Open3D on every "
         f"{OPEN3D_EVERY}th case (the counts show how many)",
         *([f"- re-run this time: {', '.join(sorted({o.method for o in outcomes} - set(kept)))}; "

@@ -26,7 +26,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
-from .verdict import MAX_SMOOTH_SPREAD, Verdict, judge_refined
+from .verdict import Verdict, judge_refined
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ class CoarseStage:
     def hopeless(self) -> bool:
         """No pose found explains the tie points' heights: the fine stage cannot help."""
         if self.verdict is not None:
-            return not self.verdict.best.smooth_unexplained <= MAX_SMOOTH_SPREAD
+            return not self.verdict.best.explains_heights
         return self.result is not None and not self.confident
 
 

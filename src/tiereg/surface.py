@@ -48,11 +48,14 @@ class SurfaceSampler:
             v = self.values
             self._half_range.append(0.5 * (ndimage.maximum_filter(v, size=3, mode="nearest")
                                            - ndimage.minimum_filter(v, size=3, mode="nearest")))
-        rows, cols = self.grid.spec.rowcol(x, y)
-        h, w = self.values.shape
-        rn = np.clip(np.rint(rows), 0, h - 1).astype(np.intp)
-        cn = np.clip(np.rint(cols), 0, w - 1).astype(np.intp)
+        rn, cn = self._nearest(*self.grid.spec.rowcol(x, y))
         return self._half_range[0][rn, cn]
+
+    def _nearest(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest cell of each position (edges clamped)."""
+        h, w = self.values.shape
+        return (np.clip(np.rint(rows), 0, h - 1).astype(np.intp),
+                np.clip(np.rint(cols), 0, w - 1).astype(np.intp))
 
     def _cell(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, ...]:
         """The bilinear cell of each position: corner indices and fractions (edges clamped)."""
@@ -78,8 +81,7 @@ class SurfaceSampler:
         top, bottom = r0 * w, r1 * w
         z = ((v.take(top + c0) * (1 - fc) + v.take(top + c1) * fc) * (1 - fr)
              + (v.take(bottom + c0) * (1 - fc) + v.take(bottom + c1) * fc) * fr)
-        rn = np.clip(np.rint(rows), 0, h - 1).astype(np.intp)
-        cn = np.clip(np.rint(cols), 0, w - 1).astype(np.intp)
+        rn, cn = self._nearest(rows, cols)
         mask = self.valid if within is None else within
         return z, inside & mask.ravel().take(rn * w + cn)
 

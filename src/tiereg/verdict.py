@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -97,7 +98,7 @@ class RefinedPose:
         the heights, about 1.4 when they are unrelated (rough ground leaves more)."""
         return self.spread / self.relief if self.relief > 0 else math.inf
 
-    @property
+    @cached_property
     def smooth_spread(self) -> float:
         """NMAD of the height residuals of the :data:`SMOOTH_SHARE` of the tie points on the
         surface where it is least rough (inf with fewer than 10 of them)."""
@@ -116,6 +117,12 @@ class RefinedPose:
     def smooth_unexplained(self) -> float:
         """:attr:`smooth_spread` over the relief under the tie points."""
         return self.smooth_spread / self.relief if self.relief > 0 else math.inf
+
+    @property
+    def explains_heights(self) -> bool:
+        """Where the surface is smooth, the pose leaves at most :data:`MAX_SMOOTH_SPREAD` of
+        the relief unexplained (False where that cannot be measured)."""
+        return self.smooth_unexplained <= MAX_SMOOTH_SPREAD
 
 
 @dataclass(frozen=True)
@@ -279,7 +286,7 @@ def verdict_of(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, .
         reasons.append(f"the refined fit runs away from the found pose (it would move the block "
                        f"{chosen.moved_cells:.1f} cells, more than {MAX_MOVE_CELLS:g}): the tie "
                        "points' heights fit best elsewhere")
-    if not chosen.smooth_unexplained <= MAX_SMOOTH_SPREAD:
+    if not chosen.explains_heights:
         reasons.append(f"the tie points' heights disagree with the reference surface at the "
                        f"found pose, even on smooth ground (residual spread "
                        f"{chosen.smooth_unexplained:.2f} of the surface's own, more than "
