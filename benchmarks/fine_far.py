@@ -21,6 +21,7 @@ stated standard deviations), sigma0, the share of tie points used, convergence a
 
     python benchmarks/fine_far.py           # -> benchmarks/results/fine-far.{md,json}
     python benchmarks/fine_far.py --quick   # one kind, one smaller case a half -> benchmarks/work/
+    python benchmarks/fine_far.py --no-peers  # tiereg again; the peers' saved rows kept
 """
 
 from __future__ import annotations
@@ -243,8 +244,8 @@ def write_report(rows: list[Row], metas: list[dict], out_dir: Path, seconds: flo
     methods = list(dict.fromkeys(r.method for r in rows))
     date = date or datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     lines = ["# The fine stage from a far start", "",
-             f"- date {date}; machine {platform.machine()}, Python {platform.python_version()}; total run "
-             f"time {seconds / 60:.0f} min (the machine shared with other work)",
+             f"- date {date}; machine {platform.machine()}, Python {platform.python_version()}; "
+             f"total run time {seconds / 60:.0f} min (the machine shared with other work)",
              "- `python benchmarks/fine_far.py` (scenes and definitions in its docstring); "
              f"far start: {FAR_SHIFT_M:g} m, {FAR_HEADING_DEG:g} deg heading, "
              f"{100 * FAR_SCALE:g} % scale off the truth about the block's centroid (random "
@@ -315,7 +316,8 @@ def _missing_peers() -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="one kind, one case a half")
-    parser.add_argument("--no-peers", action="store_true", help="tiereg only")
+    parser.add_argument("--no-peers", action="store_true",
+                        help="tiereg only; the peers' rows of results/fine-far.json are kept")
     parser.add_argument("--from-json", action="store_true",
                         help="write the report again from results/fine-far.json (no runs)")
     args = parser.parse_args()
@@ -327,6 +329,12 @@ def main() -> None:
         return
     WORK.mkdir(parents=True, exist_ok=True)
     kinds = ("suburban",) if args.quick else KINDS
+    kept: list[Row] = []  # the peers do not depend on tiereg's code: their last rows stand
+    if args.no_peers and not args.quick and (RESULTS / "fine-far.json").exists():
+        saved = json.loads((RESULTS / "fine-far.json").read_text())
+        kept = [Row(**r) for r in saved["rows"] if not r["method"].startswith("tiereg")]
+        kept = [replace(r, note=f"run of {str(saved.get('date', '?'))[:10]}; {r.note}")
+                for r in kept]
     t0 = time.perf_counter()
     rows, metas = [], []
     for half in HALVES:
@@ -335,7 +343,8 @@ def main() -> None:
                               not args.no_peers, args.quick))
             rows += r
             metas.append(m)
-            path = write_report(rows, metas, HERE / "work" if args.quick else RESULTS,
+            path = write_report(rows + [r for r in kept if r.case in {x.case for x in rows}],
+                                metas, HERE / "work" if args.quick else RESULTS,
                                 time.perf_counter() - t0, _missing_peers())
     print(path)
 

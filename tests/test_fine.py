@@ -88,6 +88,31 @@ def test_flat_ground_holds_the_horizontal_parameters():
     assert np.isnan(fit.sigma[PARAMETERS.index("tx")])
 
 
+def _flipping(step_m):
+    """The smooth surface seen through a piecewise observer: it reads ``step_m`` low while the
+    points' mean height is below the surface's and ``step_m`` high otherwise, so that
+    Gauss-Newton steps back and forth between two poses ``2 * step_m`` apart for ever."""
+
+    def observe(q):
+        r, g, ok = _vertical(q)
+        return r + (-step_m if np.mean(r) < 0 else step_m), g, ok
+
+    return observe
+
+
+def test_a_fit_stepping_between_two_poses_within_its_precision_has_converged():
+    p = _points(np.random.default_rng(11), 800)
+    q0 = TRUTH.inverse.apply(p) + np.random.default_rng(12).normal(0, [0, 0, 0.3], p.shape)
+    clean = solve_helmert(q0, _vertical, hold_displacement=5.0)
+    fit = solve_helmert(q0, _flipping(0.01), hold_displacement=5.0)  # 2 cm apart, tol 5 mm
+    assert fit.converged and fit.iterations < 40
+    # either pose of the cycle: within the cycle's 2 cm of where a smooth observer ends
+    assert np.abs(fit.T.apply(q0) - clean.T.apply(q0)).max() < 0.025  # metres
+    # the same cycle with steps far beyond the fit's precision (0.17 m at most) is no answer
+    wide = solve_helmert(q0, _flipping(0.5), hold_displacement=5.0)
+    assert not wide.converged and wide.iterations == 40
+
+
 @pytest.mark.slow
 def test_register_with_fine_reports_precision(tmp_path, scene_with_shift):
     from tiereg import register
@@ -167,6 +192,43 @@ def test_icp_observers_recover_a_known_similarity(kind):
         # point-to-point slides along a smooth surface (its nearest points follow the point): it
         # finds the height, 0.7 m off at the start, but hardly the 2.5 m horizontal offset
         assert np.sqrt(np.mean(d[:, 2] ** 2)) < 0.1
+
+
+def test_a_fit_continued_from_its_answer_stays_there():
+    # a second pass from the answer with the biweight at the first fit's scale: no Huber phase
+    # pulls it towards the blunders again, so it stops at once where it was
+    rng = np.random.default_rng(14)
+    p = _points(rng, 800)
+    q0 = TRUTH.inverse.apply(p) + rng.normal(0, [0, 0, 0.3], p.shape)
+    q0[:80, 2] += rng.uniform(5, 20, 80)  # 10 % blunders, all above the surface
+    fit = solve_helmert(q0, _vertical, hold_displacement=5.0)
+    assert fit.converged and 0.2 < fit.residual_scale < 0.45  # metres: about the 0.3 m noise
+    q1 = fit.T.apply(q0)
+    again = solve_helmert(q1, _vertical, hold_displacement=5.0, robust_scale=fit.residual_scale)
+    assert again.converged and again.iterations <= 3
+    assert np.abs(again.T.apply(q1) - q1).max() < 0.01  # metres
+
+
+def test_tie_points_beyond_the_lidars_edge_observe_nothing():
+    # the lidar covers the west half of the block only (0.5 m grid); the east half's tie points
+    # would see planes up to 250 m away, half the observations: more than robust weights trim
+    from tiereg.fine.icp import nearest_plane_observer
+
+    g = np.arange(-320.0, 0.0, 0.5)
+    gx, gy = np.meshgrid(g, np.arange(-320.0, 320.0, 0.5))
+    lidar = np.column_stack([gx.ravel(), gy.ravel(), _surface(gx, gy).ravel()])
+    p = _points(np.random.default_rng(13), 1500, half=250.0)
+    q0 = TRUTH.inverse.apply(p)
+    observe = nearest_plane_observer(lidar, weighted=True, reach=2.5 * 0.5)
+    ok = observe(p)[2]
+    assert ok[p[:, 0] < -1].all() and not ok[p[:, 0] > 1].any()  # the edge at -0.5 m
+    fit = solve_helmert(q0, observe, hold_displacement=5.0)
+    assert fit.converged
+    west = p[:, 0] < 0
+    assert np.sqrt(np.mean(np.sum((fit.T.apply(q0) - p)[west] ** 2, axis=1))) < 0.05  # metres
+    unbounded = solve_helmert(q0, nearest_plane_observer(lidar, weighted=True),
+                              hold_displacement=5.0)
+    assert np.sqrt(np.mean(np.sum((unbounded.T.apply(q0) - p)[west] ** 2, axis=1))) > 0.5
 
 
 def test_a_fine_answer_that_moves_the_block_too_far_or_fits_worse_is_refused():

@@ -127,3 +127,42 @@ def test_reference_open_reads_headers_now_and_grids_once_on_first_use(monkeypatc
     ref.grid(4 * ref.base_cell)
     ref.surface()
     assert len(passes) == 2 * n  # and never again
+
+
+def _forest_edge(tmp_path):
+    """A 1 m grid of lidar: open ground (class 2, one return a pulse) west of x = 20 m, a
+    canopy east of it (its first returns classed 5, of pulses that split in two) 15 m up."""
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales = np.array([0.01, 0.01, 0.01])
+    data = laspy.LasData(header)
+    x, y = np.meshgrid(np.arange(0.5, 40.0), np.arange(0.5, 40.0))
+    x, y = x.ravel(), y.ravel()
+    canopy = x > 20
+    data.x, data.y, data.z = x, y, np.where(canopy, 115.0, 100.0)
+    data.classification = np.where(canopy, 5, 2).astype(np.uint8)
+    data.return_number = np.ones(len(x), np.uint8)
+    data.number_of_returns = np.where(canopy, 2, 1).astype(np.uint8)
+    data.write(str(tmp_path / "edge.las"))
+    return prepare_reference(open_points(tmp_path / "edge.las"), base_cell=1.0)
+
+
+def test_open_ground_leaves_out_vegetation_and_split_pulses(tmp_path):
+    ref = _forest_edge(tmp_path)
+    everything = np.vstack(list(ref.local_chunks())) + ref.origin
+    solid = np.vstack(list(ref.local_chunks(open_ground=True))) + ref.origin
+    assert len(everything) == 1600 and len(solid) == 800
+    assert np.all(solid[:, 0] < 20) and np.all(solid[:, 2] == 100.0)
+
+
+def test_the_fine_answer_on_a_canopy_is_refused(tmp_path):
+    from tiereg.fine.lsm import _on_canopy
+
+    ref = _forest_edge(tmp_path)
+    lidar = np.vstack(list(ref.local_chunks()))
+    rng = np.random.default_rng(0)
+    west = np.column_stack([rng.uniform(1, 18, 60), rng.uniform(1, 39, 60), np.full(60, 100.0)])
+    east = west + [21.0, 0.0, 15.0]  # on the crowns
+    assert _on_canopy(west - ref.origin, lidar, ref) == ""
+    assert _on_canopy(np.vstack([west, east[:50]]) - ref.origin, lidar, ref) == ""  # 45 %
+    why = _on_canopy(east - ref.origin, lidar, ref)
+    assert "(100%) sit on vegetation" in why

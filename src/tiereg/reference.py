@@ -37,6 +37,9 @@ MAX_BASE_SIDE = 1024
 # ASPRS classes of points that are not the surface: low point (noise) and high noise; a few
 # birds or multipath returns hundreds of metres off would pull whole cells of the grids
 NOISE_CLASSES = (7, 18)
+# ASPRS low, medium and high vegetation: lidar that enters the canopy, where its first returns lie
+# anywhere down the crowns while an image's tie points sit on their tops
+VEGETATION_CLASSES = (3, 4, 5)
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,9 +129,11 @@ class Reference:
                 self._surface.append(SurfaceSampler.from_grid(self.base))
             return self._surface[0]
 
-    def points_near(self, xy: np.ndarray, radius: float) -> np.ndarray:
+    def points_near(self, xy: np.ndarray, radius: float, *,
+                    open_ground: bool = False) -> np.ndarray:
         """The reference points (local coordinates) within about ``radius`` of any of ``xy``
-        (local), those the base grid was made from.
+        (local), those the base grid was made from; with ``open_ground`` only those on a solid
+        surface (:func:`open_ground_mask`).
 
         One streaming pass; a mask of cells of size ``radius`` marks the neighbourhoods, so memory
         follows the number of positions, not the lidar.
@@ -142,7 +147,7 @@ class Reference:
                 near[ix[:, 1] + dy, ix[:, 0] + dx] = True
         kept = []
         box = (*(lo + self.origin[:2]), *(lo + radius * shape + self.origin[:2]))
-        for chunk in self.local_chunks(box=box):
+        for chunk in self.local_chunks(box=box, open_ground=open_ground):
             jx = np.floor((chunk[:, 0] - lo[0]) / radius).astype(np.int64)
             jy = np.floor((chunk[:, 1] - lo[1]) / radius).astype(np.int64)
             inside = (jx >= 0) & (jx < shape[0]) & (jy >= 0) & (jy < shape[1])
@@ -152,12 +157,12 @@ class Reference:
                 kept.append(chunk[sel])
         return np.concatenate(kept) if kept else np.empty((0, 3))
 
-    def local_chunks(self, *, box: tuple[float, float, float, float] | None = None
-                     ) -> Iterator[np.ndarray]:
+    def local_chunks(self, *, box: tuple[float, float, float, float] | None = None,
+                     open_ground: bool = False) -> Iterator[np.ndarray]:
         """The reference points again, chunk by chunk, in local coordinates: those the base grid
         was made from (:func:`_chunks`); with ``box`` (file coordinates) at least those inside
-        it, from the tiles that meet it only."""
-        for chunk in _chunks(self.source, self.first_returns_only, box):
+        it, from the tiles that meet it only; with ``open_ground`` those on a solid surface."""
+        for chunk in _chunks(self.source, self.first_returns_only, box, open_ground=open_ground):
             yield chunk - self.origin
 
     def __reduce__(self):
@@ -179,15 +184,29 @@ def surface_mask(records, first_only: bool) -> np.ndarray:
     return ok & (np.asarray(records.return_number) <= 1) if first_only else ok
 
 
+def open_ground_mask(records) -> np.ndarray:
+    """The points of a laspy record chunk on a solid surface (ground, roofs, roads): neither
+    classed as vegetation (:data:`VEGETATION_CLASSES`) nor of a pulse that split into several
+    returns (it went through something: a canopy, a wire, a roof's edge)."""
+    vegetation = np.isin(np.asarray(records.classification), VEGETATION_CLASSES)
+    return ~vegetation & (np.asarray(records.number_of_returns) <= 1)
+
+
 def _chunks(source: PointSource, first_only: bool,
-            box: tuple[float, float, float, float] | None = None) -> Iterator[np.ndarray]:
-    """The points that describe the surface (:func:`surface_mask` for LAS/LAZ); with ``box``
-    (file coordinates), at least those inside it, read from the tiles whose header bounds meet
-    it only."""
+            box: tuple[float, float, float, float] | None = None, *,
+            open_ground: bool = False) -> Iterator[np.ndarray]:
+    """The points that describe the surface (:func:`surface_mask` for LAS/LAZ), with
+    ``open_ground`` only those on a solid surface (:func:`open_ground_mask`; points without
+    classes or returns, as in XYZ text or PLY, are all kept); with ``box`` (file coordinates),
+    at least those inside it, read from the tiles whose header bounds meet it only."""
     if not isinstance(source, LasSource):
         return source.chunks()
-    return source.chunks(keep=lambda r: surface_mask(r, first_only),  # type: ignore[call-arg]
-                         box=box)
+
+    def keep(records) -> np.ndarray:
+        mask = surface_mask(records, first_only)
+        return mask & open_ground_mask(records) if open_ground else mask
+
+    return source.chunks(keep=keep, box=box)  # type: ignore[call-arg]
 
 
 def reference_spec(lo: np.ndarray, hi: np.ndarray,

@@ -55,6 +55,11 @@ class NearestPlanes:
     ``weighted``: rows scaled by ``1 / sqrt(1 + (rho / sigma)^2)`` (see the module docstring), so
     that the solver's standardized residuals are those of the weighted problem.
 
+    ``reach`` (distance units): a point whose nearest lidar point lies farther than this in plan
+    has no observation. Where the lidar covers only part of the block, the tie points beyond its
+    edge would otherwise measure their distance to a plane tens of metres away: at half overlap
+    half the observations, more than any robust weight can trim.
+
     :meth:`surface_class` tells the solver's jackknife what kind of surface each observation sees:
     the bend of the patch, from the osculating paraboloid at ``p``, ``h(u) = -kappa |u|^2 / 2``
     fitted to its neighbours (``kappa = -2 sum h_j / sum |u_j|^2``, ``h_j`` their heights over
@@ -64,8 +69,8 @@ class NearestPlanes:
     """
 
     def __init__(self, lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
-                 weighted: bool = False) -> None:
-        self.lidar, self.weighted = lidar, weighted
+                 weighted: bool = False, reach: float = np.inf) -> None:
+        self.lidar, self.weighted, self.reach = lidar, weighted, reach
         self._tree = cKDTree(lidar)
         self._k = min(neighbours, len(lidar))
         self._normal = np.full((len(lidar), 3), np.nan)
@@ -89,12 +94,14 @@ class NearestPlanes:
     def __call__(self, q: np.ndarray):
         _, idx = self._tree.query(q)
         n, rho, _ = self._patch(idx)
-        r = np.einsum("mi,mi->m", n, q - self.lidar[idx])
+        d = q - self.lidar[idx]
+        r = np.einsum("mi,mi->m", n, d)
+        ok = np.hypot(d[:, 0], d[:, 1]) <= self.reach
         if self.weighted:
-            sigma = max(nmad(r), 1e-12)
+            sigma = max(nmad(r[ok]), 1e-12) if ok.any() else 1.0
             s = 1.0 / np.sqrt(1.0 + (rho / sigma) ** 2)
             r, n = r * s, n * s[:, None]
-        return r, n, np.ones(len(q), bool)
+        return r, n, ok
 
     def surface_class(self, q: np.ndarray) -> np.ndarray:
         """0 where the patch at the nearest lidar point is concave (it turns up by more than
@@ -105,9 +112,9 @@ class NearestPlanes:
 
 
 def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
-                           weighted: bool = False) -> NearestPlanes:
+                           weighted: bool = False, reach: float = np.inf) -> NearestPlanes:
     """The nearest-plane observation model (:class:`NearestPlanes`)."""
-    return NearestPlanes(lidar, neighbours=neighbours, weighted=weighted)
+    return NearestPlanes(lidar, neighbours=neighbours, weighted=weighted, reach=reach)
 
 
 def plane_observer_icp(lidar: np.ndarray) -> Observer:

@@ -43,12 +43,18 @@ from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 # difference, and tie points gather at exactly such edges (image corners).
 MAX_SLOPE = 1.0  # rise over run: 45 degrees
 SURFACE_POINTS = 8  # lidar neighbours of a surface patch (lsm)
+# a tie point's surface is the lidar within this many of its mean spacings in plan; one with no
+# lidar point that near lies beyond the lidar's edge (or over a gap) and observes nothing
+NEAR_SPACINGS = 2.5
 MIN_LIDAR = 50  # fewer lidar points near the tie points than this: no surface model
 MAX_MOVE_CELLS = 2.0  # a fine answer moving the block farther than this (RMS) is refused
 # the fine stage's outer passes (a fresh lidar selection and linearisation each): from a start
 # 5 m, 1 degree and 0.5 % off, one pass stopped 0.07-1.55 m short (benchmarks/results/fine-far.md)
 MAX_PASSES = 10
-SETTLED_SD = 0.25
+SETTLED_SD = 1.0
+# more of the used tie points on vegetation than this: the fine answer is refused (the biweight's
+# breakdown point: a bias shared by most observations cannot be weighted away)
+MAX_CANOPY_SHARE = 0.5
 _MODEL = {"lsm": "surface", "planes": "planes"}  # the observation model after the vertical one
 
 
@@ -141,7 +147,8 @@ def register_fine(
     """
     t0 = time.perf_counter()
     hold = cell_size / 4
-    radius = max(2.5 * reference.spacing, cell_size / 4)
+    reach = NEAR_SPACINGS * reference.spacing
+    radius = max(reach, cell_size / 4)
     lidar = reference.points_near(placed[:, :2], radius)
     if len(lidar) < MIN_LIDAR:
         observe = _no_observations
@@ -152,7 +159,8 @@ def register_fine(
     elif method == "planes":
         observe = SegmentPlanes(lidar, placed, spacing=reference.spacing)
     else:
-        observe = nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True)
+        observe = nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True,
+                                         reach=reach)
     start_spread = _spread(observe, placed)
     model, start, fit = method, Transform.identity(), None
     if method in ("lsm", "planes"):
@@ -173,6 +181,8 @@ def register_fine(
     refused, contradicts = _refusal(fit, placed, observe, start_spread,
                                     MAX_MOVE_CELLS * cell_size,
                                     require_convergence=method in ("lsm", "planes"))
+    if not refused and method in ("lsm", "planes"):
+        refused = _on_canopy(fit.T.apply(placed)[fit.weights > 0.5], lidar, reference)
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
                       contradicts, lidar)
 
@@ -187,14 +197,16 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
     displacement (a fresh selection of neighbours moves a settled fit by a few centimetres, a
     fifth to a quarter of it, back and forth); a fit still moving after :data:`MAX_PASSES`
     passes has not converged, and its precision means nothing."""
+    reach = NEAR_SPACINGS * reference.spacing
     for _ in range(MAX_PASSES):
         q = fit.T.apply(placed)
-        close = _within(lidar, q[:, :2], 2.5 * reference.spacing)
+        close = _within(lidar, q[:, :2], reach)
         if len(close) < MIN_LIDAR:
             return fit
         near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
-                else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True))
-        again = solve_helmert(q, near, hold_displacement=hold)
+                else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True,
+                                            reach=reach))
+        again = solve_helmert(q, near, hold_displacement=hold, robust_scale=fit.residual_scale)
         if again.n_observed < 10:
             return fit
         moved = float(np.sqrt(np.mean(np.sum((again.T.apply(q) - q) ** 2, axis=1))))
@@ -202,6 +214,28 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
         if moved < max(hold / 1000, SETTLED_SD * _displacement_sd(again, q)):
             return fit
     return replace(fit, converged=False)
+
+
+def _on_canopy(q: np.ndarray, lidar: np.ndarray, reference: Reference) -> str:
+    """Why the fine answer's heights cannot be trusted where most of the tie points it used,
+    ``q``, have their nearest lidar point (of ``lidar``) on vegetation ("" where they do not):
+    classed so, or of a pulse that split into several returns
+    (:func:`~tiereg.reference.open_ground_mask`). There the lidar's first returns lie anywhere
+    down the crowns while an image sees their tops; with more than :data:`MAX_CANOPY_SHARE` of
+    the observations sharing that bias, no robust weight sets it aside. Lidar without classes
+    or returns (XYZ text, PLY) counts as open ground."""
+    if len(q) < 10 or len(lidar) == 0:
+        return ""
+    nearest = lidar[cKDTree(lidar).query(q)[1]]
+    solid = reference.points_near(q[:, :2], NEAR_SPACINGS * reference.spacing, open_ground=True)
+    on_open = (cKDTree(solid).query(nearest)[0] == 0.0 if len(solid)
+               else np.zeros(len(q), bool))
+    canopy = 1.0 - float(on_open.mean())
+    if canopy <= MAX_CANOPY_SHARE:
+        return ""
+    return (f"most of the tie points it used ({canopy:.0%}) sit on vegetation, where the lidar's "
+            "first returns fill the crowns' depth and an image sees their tops: their heights "
+            "do not settle the block's")
 
 
 def _displacement_sd(fit: HelmertFit, q: np.ndarray) -> float:

@@ -38,6 +38,9 @@ from ..transform import Transform, rotation_matrix
 PARAMETERS = ("scale", "omega", "phi", "kappa", "tx", "ty", "tz")
 HUBER_K, TUKEY_C = 1.345, 4.685  # in units of the residual scale (95 % efficiency each)
 HUBER_ITERATIONS = 3
+# a pose the iteration returns to after this many steps closes a cycle (:func:`_in_cycle`): the
+# cycles seen on the verdict benchmark's development half were of 2 and 4 steps
+CYCLE_LAGS = (2, 3, 4)
 
 # observe(q) -> (r, g, ok): distances (N,), their gradients (N, 3), and which points have one.
 # An observer may also have ``surface_class(q) -> (N,) int``: groups of observations whose
@@ -60,6 +63,7 @@ class HelmertFit:
     residuals: np.ndarray  # final distances (nan for points without an observation)
     iterations: int
     converged: bool
+    residual_scale: float = math.nan  # the biweight's scale of the residuals at the end (NMAD)
 
 
 def design_matrix(q: np.ndarray, g: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -168,13 +172,19 @@ def solve_helmert(
     fixed: tuple[str, ...] = (),
     max_iterations: int = 40,
     tol_displacement: float | None = None,
+    robust_scale: float | None = None,
 ) -> HelmertFit:
     """Estimate the similarity increment that brings the points ``q0`` onto the surface.
 
     ``hold_displacement`` (distance units): a parameter whose standard deviation moves the block
     (its edge, for scale and rotations) by more than this is not determined by the data and is held.
     ``fixed`` parameters are held from the start. Iterations stop when the increment moves no point
-    of the block by more than ``tol_displacement`` (default ``hold_displacement / 1000``).
+    of the block by more than ``tol_displacement`` (default ``hold_displacement / 1000``), or
+    when they come back to a pose of a few steps before, each step within its own precision
+    (:func:`_in_cycle`). ``robust_scale``: where the fit continues an earlier one from its answer
+    (the same points, the lidar selected again), that fit's ``residual_scale``: the biweight
+    from the first iteration, without the Huber phase that would first pull the pose towards
+    the outliers again.
     """
     q0 = np.asarray(q0, dtype=np.float64)
     centre = q0.mean(axis=0)
@@ -185,7 +195,8 @@ def solve_helmert(
     tol = hold_displacement / 1000 if tol_displacement is None else tol_displacement
     held = [PARAMETERS.index(p) for p in fixed]
     T = Transform.identity()
-    scale_r = float("nan")
+    huber_iterations = HUBER_ITERATIONS if robust_scale is None else 0
+    scale_r = float("nan") if robust_scale is None else robust_scale
     converged = False
     it = 0
     n = len(q0)
@@ -193,6 +204,7 @@ def solve_helmert(
     N, N_free = np.eye(7), list(range(7))
     sigma0 = float("nan")
     last = None  # the final iteration's scaled design rows, weights, distances and positions
+    recent: list[tuple[Transform, float]] = []  # the latest poses and the steps that made them
     for it in range(1, max_iterations + 1):
         q = T.apply(q0)
         r, g, ok = observe(q)
@@ -201,15 +213,15 @@ def solve_helmert(
             break
         A = design_matrix(q[ok], g[ok], centre)
         rr = r[ok]
-        if it <= HUBER_ITERATIONS or not np.isfinite(scale_r):
+        if it <= huber_iterations or not np.isfinite(scale_r):
             scale_r = max(nmad(rr), 1e-12)
-        if it == HUBER_ITERATIONS + 1:  # holds made far from the answer were provisional
+        if it == huber_iterations + 1:  # holds made far from the answer were provisional
             held = [PARAMETERS.index(p) for p in fixed]
-        w = robust_weights(rr / scale_r, tukey=it > HUBER_ITERATIONS)
+        w = robust_weights(rr / scale_r, tukey=it > huber_iterations)
         if w.sum() < 10:  # everything beyond the biweight's reach: keep descending with Huber
             w = robust_weights(rr / scale_r, tukey=False)
         # parameters the data cannot determine are held (``held`` grows)
-        Af, N, N_free, step_scaled, sigma0 = _normal_step(
+        Af, N, N_free, step_scaled, sigma0, sd_step = _normal_step(
             A, w, rr, lever, held, scale_r=scale_r, hold_displacement=hold_displacement)
         step = np.zeros(7)
         step[N_free] = step_scaled / lever[N_free]
@@ -222,13 +234,33 @@ def solve_helmert(
         w_all[np.flatnonzero(ok)] = w
         r_all[:] = np.nan
         r_all[np.flatnonzero(ok)] = rr
-        if it > HUBER_ITERATIONS and float(np.max(np.abs(step) * lever)) < tol:
+        recent = [*recent[-CYCLE_LAGS[-1]:], (T, float(np.max(np.abs(step_scaled))))]
+        if it > huber_iterations and (float(np.max(np.abs(step) * lever)) < tol
+                                      or _in_cycle(recent, q0, tol=tol, sd_step=sd_step)):
             converged = True
             break
     sigma = _precision(N, N_free, sigma0, last, observe, lever)
     return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
                       int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
-                      converged)
+                      converged, scale_r)
+
+
+def _in_cycle(recent: list[tuple[Transform, float]], q0: np.ndarray, *, tol: float,
+              sd_step: float) -> bool:
+    """Whether the iteration has closed a cycle within the fit's own precision: the pose is back
+    (every point within ``tol``) where it was 2 to 4 steps ago, and none of the steps since moved
+    the block by more than ``sd_step``, one standard deviation of the step. The observers are
+    piecewise (the nearest lidar point, a bilinear cell, a point crossing the biweight's reach
+    changes between steps), so a settled fit may step back and forth between a few poses a
+    centimetre apart for ever; any of them is the answer to within its precision."""
+    T_now = recent[-1][0]
+    for lag in CYCLE_LAGS:
+        if len(recent) <= lag:
+            break
+        back = float(np.max(np.abs(T_now.apply(q0) - recent[-1 - lag][0].apply(q0))))
+        if back < tol and max(step for _, step in recent[-lag:]) <= sd_step:
+            return True
+    return False
 
 
 def _normal_step(A: np.ndarray, w: np.ndarray, rr: np.ndarray, lever: np.ndarray,
@@ -237,7 +269,8 @@ def _normal_step(A: np.ndarray, w: np.ndarray, rr: np.ndarray, lever: np.ndarray
     (``u = theta * lever``: conditioned normals). Parameters the data cannot determine (a
     standard deviation that moves the block by more than ``hold_displacement``) are held, the
     worst first, one at a time, and the step solved again; ``held`` grows in place. Returns the
-    scaled design rows, the normals and their free parameters, the scaled step and sigma0."""
+    scaled design rows, the normals and their free parameters, the scaled step, sigma0 and the
+    largest standard deviation of the step's displacement of the block."""
     while True:
         free = [i for i in range(7) if i not in held]
         Af = A[:, free] / lever[free]
@@ -254,7 +287,7 @@ def _normal_step(A: np.ndarray, w: np.ndarray, rr: np.ndarray, lever: np.ndarray
         if sd_disp.max() > hold_displacement and len(free) > 1:
             held.append(free[int(np.argmax(sd_disp))])
             continue
-        return Af, N, free, step_scaled, sigma0
+        return Af, N, free, step_scaled, sigma0, float(sd_disp.max())
 
 
 def _precision(N: np.ndarray, N_free: list[int], sigma0: float, last, observe: Observer,
