@@ -60,7 +60,7 @@ RIVALS = 3  # genuinely different poses refined beside the answer
 NOISE_MULTIPLE = 3.0  # a tie point within this many noise spreads of the surface is explained
 MIN_Z = 4.0  # the answer explains more tie points than any rival, z standard errors apart
 SMOOTH_SHARE = 0.25  # the share of a pose's tie points, the least rough, that measure its noise
-MAX_SMOOTH_SPREAD = 0.5  # smooth-ground residual spread over the spread of the surface heights
+MAX_SMOOTH_SPREAD = 0.4  # smooth-ground residual spread over the spread of the surface heights
 
 
 @dataclass(frozen=True, eq=False)

@@ -206,7 +206,7 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
         near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
                 else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True,
                                             reach=reach))
-        again = solve_helmert(q, near, hold_displacement=hold, robust_scale=fit.residual_scale)
+        again = solve_helmert(q, near, hold_displacement=hold, biweight_from_start=True)
         if again.n_observed < 10:
             return fit
         moved = float(np.sqrt(np.mean(np.sum((again.T.apply(q) - q) ** 2, axis=1))))

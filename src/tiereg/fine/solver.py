@@ -63,7 +63,6 @@ class HelmertFit:
     residuals: np.ndarray  # final distances (nan for points without an observation)
     iterations: int
     converged: bool
-    residual_scale: float = math.nan  # the biweight's scale of the residuals at the end (NMAD)
 
 
 def design_matrix(q: np.ndarray, g: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -172,7 +171,7 @@ def solve_helmert(
     fixed: tuple[str, ...] = (),
     max_iterations: int = 40,
     tol_displacement: float | None = None,
-    robust_scale: float | None = None,
+    biweight_from_start: bool = False,
 ) -> HelmertFit:
     """Estimate the similarity increment that brings the points ``q0`` onto the surface.
 
@@ -181,10 +180,10 @@ def solve_helmert(
     ``fixed`` parameters are held from the start. Iterations stop when the increment moves no point
     of the block by more than ``tol_displacement`` (default ``hold_displacement / 1000``), or
     when they come back to a pose of a few steps before, each step within its own precision
-    (:func:`_in_cycle`). ``robust_scale``: where the fit continues an earlier one from its answer
-    (the same points, the lidar selected again), that fit's ``residual_scale``: the biweight
-    from the first iteration, without the Huber phase that would first pull the pose towards
-    the outliers again.
+    (:func:`_in_cycle`). ``biweight_from_start``: where the fit continues an earlier one from its
+    answer (the same points, the lidar selected again), the biweight from the first iteration
+    at the scale of the residuals there, without the Huber phase that would first pull the pose
+    towards the outliers again.
     """
     q0 = np.asarray(q0, dtype=np.float64)
     centre = q0.mean(axis=0)
@@ -195,8 +194,8 @@ def solve_helmert(
     tol = hold_displacement / 1000 if tol_displacement is None else tol_displacement
     held = [PARAMETERS.index(p) for p in fixed]
     T = Transform.identity()
-    huber_iterations = HUBER_ITERATIONS if robust_scale is None else 0
-    scale_r = float("nan") if robust_scale is None else robust_scale
+    huber_iterations = 0 if biweight_from_start else HUBER_ITERATIONS
+    scale_r = float("nan")
     converged = False
     it = 0
     n = len(q0)
@@ -242,7 +241,7 @@ def solve_helmert(
     sigma = _precision(N, N_free, sigma0, last, observe, lever)
     return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
                       int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
-                      converged, scale_r)
+                      converged)
 
 
 def _in_cycle(recent: list[tuple[Transform, float]], q0: np.ndarray, *, tol: float,
