@@ -345,7 +345,7 @@ def main() -> None:
             metas.append(m)
             path = write_report(rows + [r for r in kept if r.case in {x.case for x in rows}],
                                 metas, HERE / "work" if args.quick else RESULTS,
-                                time.perf_counter() - t0, _missing_peers())
+                                time.perf_counter() - t0, {} if kept else _missing_peers())
     print(path)
 
 
