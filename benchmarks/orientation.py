@@ -101,12 +101,13 @@ def main() -> None:
             cells = float(np.hypot(*dxy) / cell)
             correct = (not result.confident) if negative else (
                 rot <= ROTATION_TOL_DEG and abs(ds) <= SCALE_TOL and cells <= 1.0)
-            lv = result.levelling or {}
+            lv = result.levelling
             rows.append({"kind": kind, "case": case, "negative": negative, "cameras": cameras,
                          "scale": hidden.scale, "correct": correct,
                          "confident": result.confident, "rotation_err_deg": rot,
                          "scale_err": ds, "cells": cells, "seconds": seconds,
-                         "tilt_deg": lv.get("tilt_deg"), "level_source": lv.get("source", "-"),
+                         "tilt_deg": lv.tilt_deg if lv else None,
+                         "level_source": lv.source if lv else "-",
                          "note": "; ".join(result.reasons)[:90]})
             print(f"{kind}-{case} {'cams' if cameras else 'points'}: correct {correct}, "
                   f"confident {result.confident}, rotation {rot:.2f} deg, {seconds:.1f} s",
@@ -139,7 +140,8 @@ def write(rows: list[dict], seconds: float, *, speed: tuple[str, str]) -> None:
              f"{SCALE_TOL:.0%}, block centre within one coarse cell; coarse stage only",
              f"- **confidently wrong: {cw}**; negatives rejected "
              f"{sum(r['correct'] for r in neg)}/{len(neg)}", "",
-             "| cases | correct | rate | confidently wrong | median s |", "|---|---:|---:|---:|---:|",
+             "| cases | correct | rate | confidently wrong | median s |",
+             "|---|---:|---:|---:|---:|",
              line(pos, "all"), line([r for r in pos if r["cameras"]], "with cameras"),
              line([r for r in pos if not r["cameras"]], "points only")]
     for k in dict.fromkeys(r["kind"] for r in pos):
