@@ -90,6 +90,12 @@ class Reference:
             return self._made[0]
 
     @property
+    def knows_open_ground(self) -> bool:
+        """Whether the points carry classes and return numbers (LAS/LAZ/COPC), so that
+        ``open_ground`` can leave out vegetation; XYZ text and PLY cannot tell."""
+        return isinstance(self.source, LasSource)
+
+    @property
     def first_returns_only(self) -> bool:
         """Whether the base grid holds first returns only (the file records returns)."""
         if self._base is not None:

@@ -194,11 +194,12 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
     """Again from where the fit ended, until the pose stops moving: each pass re-selects the
     lidar right around the tie points (far from the answer the nearest point in 3-D may lie
     beside a tie point, up a slope or on the next crown; ``planes``: segmented again around
-    where the tie points now are) and re-linearises there. Settled when a pass moves the block
-    (RMS) by less than :data:`SETTLED_SD` of the fit's own standard deviation of that
-    displacement (a fresh selection of neighbours moves a settled fit by a few centimetres, a
-    fifth to a quarter of it, back and forth); a fit still moving after :data:`MAX_PASSES`
-    passes has not converged, and its precision means nothing."""
+    where the tie points now are) and re-linearises there, continuing the biweight (no new
+    Huber phase). Settled when a pass moves the block (RMS) by less than :data:`SETTLED_SD` of
+    the fit's own standard deviations of that displacement: a move the data cannot tell from
+    none (a fresh selection of neighbours moves a settled fit back and forth by a third of one
+    or more); a fit still moving after :data:`MAX_PASSES` passes has not converged, and its
+    precision means nothing."""
     reach = NEAR_SPACINGS * reference.spacing
     for _ in range(MAX_PASSES):
         q = fit.T.apply(placed)
@@ -226,8 +227,8 @@ def _on_canopy(q: np.ndarray, lidar: np.ndarray, reference: Reference) -> str:
     down the crowns while an image sees their tops; with more than :data:`MAX_CANOPY_SHARE` of
     the observations sharing that bias, no robust weight sets it aside. Lidar without classes
     or returns (XYZ text, PLY) counts as open ground."""
-    if len(q) < 10 or len(lidar) == 0:
-        return ""
+    if len(q) < 10 or len(lidar) == 0 or not reference.knows_open_ground:
+        return ""  # without classes or returns there is nothing to read again
     nearest = lidar[cKDTree(lidar).query(q)[1]]
     solid = reference.points_near(q[:, :2], NEAR_SPACINGS * reference.spacing, open_ground=True)
     on_open = (cKDTree(solid).query(nearest)[0] == 0.0 if len(solid)

@@ -233,8 +233,9 @@ def solve_helmert(
         w_all[np.flatnonzero(ok)] = w
         r_all[:] = np.nan
         r_all[np.flatnonzero(ok)] = rr
-        recent = [*recent[-CYCLE_LAGS[-1]:], (T, float(np.max(np.abs(step_scaled))))]
-        if it > huber_iterations and (float(np.max(np.abs(step) * lever)) < tol
+        moved = float(np.max(np.abs(step_scaled)))  # the step's largest displacement
+        recent = [*recent[-CYCLE_LAGS[-1]:], (T, moved)]
+        if it > huber_iterations and (moved < tol
                                       or _in_cycle(recent, q0, tol=tol, sd_step=sd_step)):
             converged = True
             break
