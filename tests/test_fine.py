@@ -173,6 +173,30 @@ def test_fine_starts_from_an_initial_pose(tmp_path, scene_with_shift):
     assert rms(saved) < 0.25
 
 
+def test_a_far_start_reads_the_lidar_again_where_the_tie_points_end():
+    # a start 3 degrees and 1 % off moves the block's edges 18-25 m, beyond the lidar first read
+    # around the tie points (5 m at this cell): there they would observe nothing (old: 623 of
+    # 1,000), or only the near side of their surface; read again, every one observes it
+    from tiereg import register
+
+    def surface(x, y):
+        return _surface(x, y) + 2 * np.sin(x / 6) * np.cos(y / 8)
+
+    rng = np.random.default_rng(3)
+    g = np.arange(-450.0, 450.0, 1.0)
+    gx, gy = (a.ravel() + rng.uniform(-0.3, 0.3, a.size) for a in np.meshgrid(g, g))
+    lidar = np.column_stack([gx, gy, surface(gx, gy)])
+    xy = rng.uniform(-350, 350, (1000, 2))
+    p = np.column_stack([xy, surface(xy[:, 0], xy[:, 1]) + rng.normal(0, 0.1, len(xy))])
+    start = (Transform.from_translation((3.0, -4.0, 0.0))
+             @ Transform.from_parameters(scale=1.01, kappa=np.radians(3.0)))
+    result = register(p, lidar, coarse="none", initial=start)
+    assert result.fine is not None and not result.fine.refused
+    assert result.fine.fit.n_observed == len(p)
+    d = result.T_ref_mov.apply(p) - p
+    assert np.sqrt(np.mean(np.sum(d**2, axis=1))) < 0.1  # metres, from 16 m off
+
+
 @pytest.mark.parametrize("kind", ["point", "plane"])
 def test_icp_observers_recover_a_known_similarity(kind):
     from tiereg.fine.icp import plane_observer_icp, point_observer
