@@ -156,17 +156,7 @@ def register_fine(
     reach = NEAR_SPACINGS * reference.spacing
     radius = max(READ_REACHES * reach, cell_size / 4)
     lidar = reference.points_near(placed[:, :2], radius)
-    if len(lidar) < MIN_LIDAR:
-        observe = _no_observations
-    elif method == "icp-point":
-        observe = point_observer(lidar)
-    elif method == "icp-plane":
-        observe = plane_observer_icp(lidar)
-    elif method == "planes":
-        observe = SegmentPlanes(lidar, placed, spacing=reference.spacing)
-    else:
-        observe = nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True,
-                                         reach=reach)
+    observe = _surface_observer(method, lidar, placed, reference)
     start_spread = _spread(observe, placed)
     model, start, fit = method, Transform.identity(), None
     if method in ("lsm", "planes"):
@@ -184,8 +174,11 @@ def register_fine(
         fit = replace(fit, T=fit.T @ start)
     end_observe = observe
     if method in ("lsm", "planes") and model != "vertical" and fit.n_observed >= 10:
-        fit, lidar, end_observe = _settle(fit, placed, lidar, reference, method=method,
-                                          hold=hold, radius=radius, observe=observe)
+        first = lidar
+        fit, lidar = _settle(fit, placed, lidar, reference, method=method, hold=hold,
+                             radius=radius)
+        if lidar is not first:  # read again around where the tie points went: judged there
+            end_observe = _surface_observer(method, lidar, fit.T.apply(placed), reference)
     refused, contradicts = _refusal(fit, placed, observe, start_spread,
                                     MAX_MOVE_CELLS * cell_size,
                                     require_convergence=method in ("lsm", "planes"),
@@ -196,9 +189,23 @@ def register_fine(
                       contradicts, lidar)
 
 
+def _surface_observer(method: str, lidar: np.ndarray, q: np.ndarray,
+                      reference: Reference) -> Observer:
+    """The observation model of ``method`` on ``lidar`` (the points read around ``q``)."""
+    if len(lidar) < MIN_LIDAR:
+        return _no_observations
+    if method == "icp-point":
+        return point_observer(lidar)
+    if method == "icp-plane":
+        return plane_observer_icp(lidar)
+    if method == "planes":
+        return SegmentPlanes(lidar, q, spacing=reference.spacing)
+    return nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True,
+                                  reach=NEAR_SPACINGS * reference.spacing)
+
+
 def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: Reference, *,
-            method: str, hold: float, radius: float,
-            observe: Observer) -> tuple[HelmertFit, np.ndarray, Observer]:
+            method: str, hold: float, radius: float) -> tuple[HelmertFit, np.ndarray]:
     """Again from where the fit ended, until the pose stops moving: each pass re-selects the
     lidar right around the tie points (far from the answer the nearest point in 3-D may lie
     beside a tie point, up a slope or on the next crown; ``planes``: segmented again around
@@ -212,7 +219,7 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
     standard deviations of that displacement: a move the data cannot tell from none (a fresh
     selection of neighbours moves a settled fit back and forth by a third of one or more); a
     fit still moving after :data:`MAX_PASSES` passes has not converged, and its precision means
-    nothing. Returns the fit, the lidar last read and the observer of its last pass."""
+    nothing. Returns the fit and the lidar last read."""
     reach = NEAR_SPACINGS * reference.spacing
     read_at = placed[:, :2]
     for _ in range(MAX_PASSES):
@@ -222,19 +229,18 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
             lidar = reference.points_near(read_at, radius)
         close = _within(lidar, q[:, :2], reach)
         if len(close) < MIN_LIDAR:
-            return fit, lidar, observe
+            return fit, lidar
         near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
                 else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True,
                                             reach=reach))
         again = solve_helmert(q, near, hold_displacement=hold, biweight_from_start=True)
         if again.n_observed < 10:
-            return fit, lidar, observe
-        observe = near
+            return fit, lidar
         moved = float(np.sqrt(np.mean(np.sum((again.T.apply(q) - q) ** 2, axis=1))))
         fit = replace(again, T=again.T @ fit.T)
         if moved < max(hold / 1000, SETTLED_SD * _displacement_sd(again, q)):
-            return fit, lidar, observe
-    return replace(fit, converged=False), lidar, observe
+            return fit, lidar
+    return replace(fit, converged=False), lidar
 
 
 def _on_canopy(q: np.ndarray, lidar: np.ndarray, reference: Reference) -> str:
