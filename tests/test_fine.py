@@ -418,6 +418,27 @@ def test_precision_covers_a_bias_shared_by_one_kind_of_surface():
         assert bool(abs(tz_error) <= 3 * fit.sigma[6]) == honest
 
 
+def test_precision_widens_by_how_far_the_answer_depends_on_the_surface_model():
+    from tiereg.fine.lsm import _with_model_error
+
+    rng = np.random.default_rng(15)
+    p = _points(rng, 800)
+    q0 = p + rng.normal(0, [0.0, 0.0, 0.1], p.shape)
+    fit = solve_helmert(q0, _vertical, hold_displacement=5.0)
+    q = fit.T.apply(q0)
+
+    def higher(points):  # another fair model of the same surface, 0.1 m higher
+        r, g, ok = _vertical(points)
+        return r - 0.1, g, ok
+
+    tz = PARAMETERS.index("tz")
+    wide = _with_model_error(fit, q, higher, hold=5.0)
+    assert wide.sigma[tz] == pytest.approx(np.hypot(fit.sigma[tz], 0.1), rel=0.05)
+    assert np.array_equal(wide.T.matrix, fit.T.matrix)  # the answer stays; only its precision
+    same = _with_model_error(fit, q, _vertical, hold=5.0)  # the models agree: nothing to add
+    assert same.sigma[tz] == pytest.approx(fit.sigma[tz], rel=0.05)
+
+
 def test_segment_planes_finds_the_roof_and_the_ground_at_its_edge():
     from tiereg.fine.planes import segment_planes
 
