@@ -13,13 +13,15 @@ Two observation models feed the one solver (:func:`~tiereg.fine.solver.solve_hel
 
 ``lsm`` runs the vertical model, keeps its answer only when it brings the tie points closer to the
 lidar's surface (on rough ground, forest or steep relief, a grid cell's mean height is not the
-surface a tie point sits on), then solves the surface model from there. A final guard refuses a
+surface a tie point sits on), then solves the surface model from there and settles it pass by pass
+(:func:`_settle`), reading the lidar again where the tie points have gone. A final guard refuses a
 fine answer that leaves the tie points farther from the surface than the coarse pose did, that
 moves the block by more than the coarse stage's uncertainty, or that rests mostly on vegetation
-(:func:`_on_canopy`): the coarse answer then stands, and the result says so. Tie points sit on
-the visible surface, so both models use first returns; robust weights keep edges and blunders
-from pulling the answer, and a tie point beyond the lidar's edge observes nothing
-(:data:`NEAR_SPACINGS`).
+(:func:`_on_canopy`): the coarse answer then stands, and the result says so. Tie points sit on the
+visible surface, so both models use first returns; robust weights keep edges and blunders from
+pulling the answer, and a tie point beyond the lidar's edge observes nothing
+(:data:`NEAR_SPACINGS`). An accepted answer's precision includes how far it depends on the model of
+the lidar's surface (:func:`_with_model_error`).
 """
 
 from __future__ import annotations
