@@ -175,8 +175,8 @@ def test_fine_starts_from_an_initial_pose(tmp_path, scene_with_shift):
 
 def test_a_far_start_reads_the_lidar_again_where_the_tie_points_end():
     # a start 3 degrees and 1 % off moves the block's edges 18-25 m, beyond the lidar first read
-    # around the tie points (5 m at this cell): there they would observe nothing (old: 623 of
-    # 1,000), or only the near side of their surface; read again, every one observes it
+    # around the tie points (5-8 m here): there they would observe nothing (623 of 1,000 observed
+    # when it was read only once), or only the near side of their surface; read again, all do
     from tiereg import register
 
     def surface(x, y):
