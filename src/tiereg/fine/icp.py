@@ -103,6 +103,10 @@ class NearestPlanes:
             r, n = r * s, n * s[:, None]
         return r, n, ok
 
+    def nearest_points(self, q: np.ndarray) -> np.ndarray:
+        """The lidar point nearest each of ``q`` in 3-D (the one each observes)."""
+        return self.lidar[self._tree.query(q)[1]]
+
     def surface_class(self, q: np.ndarray) -> np.ndarray:
         """0 where the patch at the nearest lidar point is concave (it turns up by more than
         :data:`BEND_RAD` across its radius), 2 where convex, 1 where it is about flat."""

@@ -38,7 +38,7 @@ from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform
-from .icp import nearest_plane_observer, plane_observer_icp, point_observer
+from .icp import NearestPlanes, nearest_plane_observer, plane_observer_icp, point_observer
 from .planes import SegmentPlanes
 from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 
@@ -186,7 +186,10 @@ def register_fine(
                                     require_convergence=method in ("lsm", "planes"),
                                     end_observe=end_observe)
     if not refused and method in ("lsm", "planes"):
-        refused = _on_canopy(fit.T.apply(placed)[fit.weights > 0.5], lidar, reference)
+        used = fit.T.apply(placed)[fit.weights > 0.5]
+        nearest = (end_observe.nearest_points(used) if isinstance(end_observe, NearestPlanes)
+                   else None)  # its tree already holds the lidar last read
+        refused = _on_canopy(used, lidar, reference, nearest=nearest)
     if not refused and method == "lsm" and model != "vertical":
         fit = _with_model_error(fit, fit.T.apply(placed), end_observe, hold=hold)
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
@@ -266,17 +269,20 @@ def _with_model_error(fit: HelmertFit, q: np.ndarray, whole: Observer, *,
     return replace(fit, sigma=np.hypot(fit.sigma, move))
 
 
-def _on_canopy(q: np.ndarray, lidar: np.ndarray, reference: Reference) -> str:
+def _on_canopy(q: np.ndarray, lidar: np.ndarray, reference: Reference, *,
+               nearest: np.ndarray | None = None) -> str:
     """Why the fine answer's heights cannot be trusted where most of the tie points it used,
     ``q``, have their nearest lidar point (of ``lidar``) on vegetation ("" where they do not):
     classed so, or of a pulse that split into several returns
     (:func:`~tiereg.reference.open_ground_mask`). There the lidar's first returns lie anywhere
     down the crowns while an image sees their tops; with more than :data:`MAX_CANOPY_SHARE` of
     the observations sharing that bias, no robust weight sets it aside. Lidar without classes
-    or returns (XYZ text, PLY) counts as open ground."""
+    or returns (XYZ text, PLY) counts as open ground. ``nearest``: those lidar points, where
+    the caller has them (an observer's tree over ``lidar``), else found here."""
     if len(q) < 10 or len(lidar) == 0 or not reference.knows_open_ground:
         return ""  # without classes or returns there is nothing to read again
-    nearest = lidar[cKDTree(lidar).query(q)[1]]
+    if nearest is None:
+        nearest = lidar[cKDTree(lidar).query(q)[1]]
     solid = reference.points_near(q[:, :2], NEAR_SPACINGS * reference.spacing, open_ground=True)
     on_open = (cKDTree(solid).query(nearest)[0] == 0.0 if len(solid)
                else np.zeros(len(q), bool))
