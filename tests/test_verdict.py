@@ -2,10 +2,25 @@
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import replace
 
+import numpy as np
+import pytest
+from scenes import make_scene
+
+import tiereg
+import tiereg.verdict as verdict_module
+from tiereg import PointSet
+from tiereg.io import as_point_source
 from tiereg.transform import Transform
-from tiereg.verdict import MAX_SMOOTH_SPREAD, NOISE_MULTIPLE, RefinedPose, verdict_of
+from tiereg.verdict import (
+    MAX_SMOOTH_SPREAD,
+    NOISE_MULTIPLE,
+    SETTLED_CELLS,
+    RefinedPose,
+    refine,
+    verdict_of,
+)
 
 RELIEF_M = 30.0  # the NMAD of the surface heights under every test pose
 
@@ -76,3 +91,53 @@ def test_too_few_tie_points_on_the_surface_measure_no_noise():
     assert pose.smooth_spread == np.inf
     verdict = verdict_of((pose, _pose(8.0, seed=1)), 0, (30.0, 5.0), (np.nan, 9.0), 1.0)
     assert not verdict.confident
+
+
+# --------------------------------------------------------------- the refined fit of one pose
+CELL_M = 20.0  # the registration's cell of the refine tests
+
+
+@pytest.fixture(scope="module")
+def placed_scene():
+    """Tie points and the lidar's surface of a scene in the reference's local frame: the
+    tie points centred, with the pose that puts them on the surface."""
+    s = make_scene(seed=5, lidar_points=150_000, tie_points=1500)
+    ref = tiereg.prepare_reference(as_point_source(PointSet(s.lidar), role="reference"))
+    local = s.T_ref_mov.apply(s.tie_mov) - ref.origin
+    centre = local.mean(axis=0)
+    return local - centre, Transform.from_translation(centre), ref.surface()
+
+
+def _ends_at_the_limit(monkeypatch, wander_m: float) -> None:
+    """The refined fit ends at its iteration limit, its last steps ``wander_m`` apart."""
+    real = verdict_module.solve_helmert
+
+    def stepping(*args, **kwargs):
+        return replace(real(*args, **kwargs), converged=False, wander=wander_m)
+
+    monkeypatch.setattr(verdict_module, "solve_helmert", stepping)
+
+
+def test_a_fit_stepping_about_within_a_quarter_cell_at_its_limit_is_kept(placed_scene,
+                                                                          monkeypatch):
+    # a start a cell and a half off and 2 % too large: the fit brings it back; that it ends at
+    # its iteration limit stepping back and forth by a fifth of a cell does not undo that
+    moving, T_true, surface = placed_scene
+    T_start = (Transform.from_translation((24.0, -18.0, 3.0)) @ T_true
+               @ Transform.from_parameters(scale=1.02))
+    _ends_at_the_limit(monkeypatch, wander_m=0.2 * CELL_M)
+    pose = refine(moving, surface, T_start, cell=CELL_M)
+    assert pose.converged
+    error = np.sqrt(np.mean(np.sum((pose.T.apply(moving) - T_true.apply(moving)) ** 2, axis=1)))
+    assert error < 0.5  # metres, at the tie points (the start: 30 m)
+    assert pose.T.scale == pytest.approx(1.0, abs=0.002)
+
+
+def test_a_fit_still_wandering_by_more_than_a_quarter_cell_leaves_the_start(placed_scene,
+                                                                             monkeypatch):
+    moving, T_true, surface = placed_scene
+    T_start = Transform.from_translation((24.0, -18.0, 3.0)) @ T_true
+    _ends_at_the_limit(monkeypatch, wander_m=SETTLED_CELLS * CELL_M * 1.2)
+    pose = refine(moving, surface, T_start, cell=CELL_M)
+    assert not pose.converged
+    assert np.allclose(pose.T.matrix, T_start.matrix)

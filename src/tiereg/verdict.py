@@ -61,6 +61,13 @@ NOISE_MULTIPLE = 3.0  # a tie point within this many noise spreads of the surfac
 MIN_Z = 4.0  # the answer explains more tie points than any rival, z standard errors apart
 SMOOTH_SHARE = 0.25  # the share of a pose's tie points, the least rough, that measure its noise
 MAX_SMOOTH_SPREAD = 0.4  # smooth-ground residual spread over the spread of the surface heights
+# a refined fit whose last steps wander within this share of a cell has settled: the verdict
+# tells poses apart at a cell (the fine stage goes on from its answer), and a parameter whose
+# standard deviation moves the block a quarter of a cell is held as not determined. On a
+# gridded surface the fit can step back and forth for ever between poses a metre apart (a
+# COLMAP model of farmland: 2-cycles of 1.9 m at a 20 m cell, its scale 2 % better than the
+# search's), which the solver's cycle test, made for centimetres, does not close
+SETTLED_CELLS = 0.25
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,7 +76,7 @@ class RefinedPose:
 
     T_start: Transform  # local reference frame <- centred moving frame
     T: Transform  # after the fit (the start where the fit ran away)
-    converged: bool
+    converged: bool  # the refined fit settled: converged, or wandered within SETTLED_CELLS
     moved_cells: float  # how far the fit moved the block (RMS), in cells
     dz: np.ndarray = field(repr=False)  # surface height - tie point height; NaN off the surface
     surface_z: np.ndarray = field(repr=False)  # the surface's heights under the tie points
@@ -183,16 +190,18 @@ def rival_poses(answer: Transform, hypotheses: tuple[Hypothesis, ...], *, tie_ce
 def refine(moving: np.ndarray, surface: SurfaceSampler, T_start: Transform, *,
            cell: float) -> RefinedPose:
     """The refined fit from ``T_start`` (``moving``: centred model coordinates; ``cell``: the
-    registration's cell, reference units): kept where it converged within
+    registration's cell, reference units): kept where it settled (converged, or ended its
+    iterations stepping about within :data:`SETTLED_CELLS` of a cell) within
     :data:`~tiereg.fine.lsm.MAX_MOVE_CELLS` cells and leaves the heights closer to the
     surface (a smaller robust spread), else the start stands."""
     placed = T_start.apply(moving)
     fit = solve_helmert(placed, vertical_observer(surface), hold_displacement=cell / 4)
     moved = float(np.sqrt(np.mean(np.sum((fit.T.apply(placed) - placed) ** 2, axis=1)))) / cell
-    T = fit.T @ T_start if fit.converged and moved <= MAX_MOVE_CELLS else T_start
-    pose = _pose_at(T_start, T, moving, surface, fit.converged, moved)
+    settled = fit.converged or fit.wander <= SETTLED_CELLS * cell
+    T = fit.T @ T_start if settled and moved <= MAX_MOVE_CELLS else T_start
+    pose = _pose_at(T_start, T, moving, surface, settled, moved)
     if T is not T_start:  # a fit that leaves the heights farther from the surface is no fit
-        start = _pose_at(T_start, T_start, moving, surface, fit.converged, moved)
+        start = _pose_at(T_start, T_start, moving, surface, settled, moved)
         if start.spread < pose.spread:
             return start
     return pose

@@ -63,6 +63,10 @@ class HelmertFit:
     residuals: np.ndarray  # final distances (nan for points without an observation)
     iterations: int
     converged: bool
+    # how far the last few iterates lie from the answer (the largest displacement of a point of
+    # the block between the answer and the poses of the last ``CYCLE_LAGS[-1]`` steps): an
+    # iteration that ends at its limit stepping back and forth has settled to within this
+    wander: float = 0.0
 
 
 def design_matrix(q: np.ndarray, g: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -242,7 +246,16 @@ def solve_helmert(
     sigma = _precision(N, N_free, sigma0, last, observe, lever)
     return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
                       int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
-                      converged)
+                      converged, _wander(recent, q0))
+
+
+def _wander(recent: list[tuple[Transform, float]], q0: np.ndarray) -> float:
+    """The largest displacement of a point of ``q0`` between the last pose of ``recent`` and
+    each earlier one (0 with fewer than two)."""
+    if len(recent) < 2:
+        return 0.0
+    end = recent[-1][0].apply(q0)
+    return max(float(np.max(np.abs(end - T.apply(q0)))) for T, _ in recent[:-1])
 
 
 def _in_cycle(recent: list[tuple[Transform, float]], q0: np.ndarray, *, tol: float,
