@@ -11,7 +11,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e '.[test,bench,distributed,calibrate]'
+	$(BIN)/python -m pip install --quiet -e '.[report,simulate,test,bench,distributed,calibrate]'
 	rm -f $(VENV)/.installed-* && touch $@
 
 install: $(STAMP)

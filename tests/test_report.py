@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 from tiereg import register
 from tiereg.cli import main
 from tiereg.demo import make_tie_points, sample_lidar
+from tiereg.errors import MissingDependencyError
 from tiereg.io import open_points
 from tiereg.report import write_report
 
@@ -172,3 +174,13 @@ def test_report_renders_in_a_headless_browser(report, tmp_path):
     blue = (img[:, :, 2] > 0.5) & (img[:, :, 0] < 0.3)
     assert red.sum() > 500 and blue.sum() > 500
     assert np.mean(img.sum(axis=2) < 2.7) > 0.03
+
+
+def test_without_matplotlib_the_report_names_its_extra_and_writes_nothing(demo_result, tmp_path,
+                                                                           monkeypatch):
+    # an installation without the `report` extra: importing matplotlib fails
+    for name in ("matplotlib", "matplotlib.pyplot"):
+        monkeypatch.setitem(sys.modules, name, None)
+    with pytest.raises(MissingDependencyError, match=r"tiereg\[report\]"):
+        write_report(demo_result, tmp_path / "report")
+    assert not (tmp_path / "report").exists()

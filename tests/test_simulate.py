@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
 
 from tiereg.cli import main
+from tiereg.errors import MissingDependencyError
 from tiereg.io import read_points
 from tiereg.robust import nmad
 from tiereg.simulate import HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene
+from tiereg.simulate.world import find_corners
 from tiereg.transform import Transform
 
 SMALL = dict(world_size_m=3000.0, lidar_size_m=2000.0,
@@ -101,3 +104,18 @@ def test_cli_writes_a_scene(tmp_path, capsys):
     assert len(lidar) > 1_000_000 and 700 < len(ties) < 900
     assert T.scale == pytest.approx(2.0) and truth["overlap_fraction"] == pytest.approx(0.8,
                                                                                           abs=0.03)
+
+
+def test_without_scikit_image_the_simulator_says_which_extra_installs_it(tmp_path, monkeypatch,
+                                                                          capsys):
+    for name in ("skimage", "skimage.feature"):
+        monkeypatch.setitem(sys.modules, name, None)
+    image = np.zeros((32, 32))
+    image[8:24, 8:24] = 1.0  # a square: four corners
+    with pytest.raises(MissingDependencyError, match=r"tiereg\[simulate\]"):
+        find_corners(image)
+    code = main(["simulate", str(tmp_path / "scene"), "--kind", "farmland",
+                 "--world-size", "800", "--lidar-size", "600", "--block-size", "400"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "tiereg[simulate]" in err[0]
+    assert not (tmp_path / "scene").exists()

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ._optional import pyplot
 from .archive import TileIndex
 from .errors import InputError
 from .grid import Grid, GridSpec
@@ -230,10 +231,7 @@ def _one_block(name: str, block: str, ref: Reference, out: Path, *, client: Any,
 def overview_map(ref: Reference, outcomes: Sequence[BlockOutcome], path: Path) -> None:
     """The archive's heights (at most 800 cells a side) and every block's outline on them:
     green where confident, red where not."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot("the batch's overview map")
 
     spec = ref.base.spec
     k = max(1, math.ceil(max(spec.shape) / 800))

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._optional import pyplot
+
 
 def _png(fig) -> str:
     buf = io.BytesIO()
@@ -18,7 +20,7 @@ def _png(fig) -> str:
 
 
 def _residual_maps(result):
-    import matplotlib.pyplot as plt
+    plt = pyplot("the calibration report")
 
     r = result.residuals
     xyz, used = r["xyz"], r["check"] | r["control"] | r["control_before"]
@@ -39,7 +41,7 @@ def _residual_maps(result):
 
 
 def _distortion(result):
-    import matplotlib.pyplot as plt
+    plt = pyplot("the calibration report")
 
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for cam in result.cameras:
@@ -63,10 +65,7 @@ def _distortion(result):
 
 def write_calibration_report(result, folder: str | Path) -> Path:
     """Write ``report.html`` into ``folder``; returns its path."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot("the calibration report")
 
     from ..io.base import write_text_atomic
 

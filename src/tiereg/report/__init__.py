@@ -154,11 +154,6 @@ def _dz_grid(xy: np.ndarray, dz: np.ndarray, cell: float) -> tuple[np.ndarray, G
 def _write(data: dict[str, Any], residuals: PointResiduals,
            control: tuple[ControlPoint, ...], out: Path, *, crs_wkt: str | None,
            correlation: np.ndarray | None = None) -> Report:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot create the report folder ({exc.strerror}); give a "
-                          "folder you can write to") from None
     units = str(data.get("inputs", {}).get("units", "unknown"))
     xy = residuals.xyz[:, :2]
     after, before = residuals.stats(), residuals.stats(after=False)
@@ -179,6 +174,11 @@ def _write(data: dict[str, Any], residuals: PointResiduals,
     if correlation is not None:
         pictures["coarse_correlation.png"] = figures.correlation_surface(
             correlation, float(data.get("cell_size") or 1.0), units=units)
+    try:  # the pictures are drawn first: a report that cannot be drawn leaves no folder
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the report folder ({exc.strerror}); give a "
+                          "folder you can write to") from None
     files = []
     for name, png in pictures.items():
         with atomic_output(out / name) as tmp:

@@ -11,21 +11,13 @@ import math
 
 import numpy as np
 
-from ..errors import MissingDependencyError
+from .._optional import pyplot
 
 DPI = 110
 
 
 def _pyplot():
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg", force=True)  # off-screen: no display is needed
-        import matplotlib.pyplot as plt
-    except ImportError:  # pragma: no cover - a dependency of tiereg
-        raise MissingDependencyError(
-            "the report needs matplotlib; install it with: pip install matplotlib") from None
-    return plt
+    return pyplot("the report")
 
 
 def _png(fig) -> bytes:

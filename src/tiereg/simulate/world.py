@@ -22,6 +22,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .._optional import require
+
 KINDS = ("farmland", "suburban", "urban", "forest", "mountains")
 
 
@@ -233,9 +235,8 @@ def find_corners(image: np.ndarray, *, threshold_rel: float = 0.005) -> tuple[np
     The local maxima come from a 5x5 maximum filter, which finds what ``corner_peaks`` finds up to
     its distance pruning, at a fraction of the cost on large images.
     """
-    from skimage.feature import corner_harris
-
-    response = corner_harris(image.astype(np.float64), sigma=1.0)
+    skimage_feature = require("skimage.feature", extra="simulate", feature="the simulator")
+    response = skimage_feature.corner_harris(image.astype(np.float64), sigma=1.0)
     peak = (response == ndimage.maximum_filter(response, size=5)) & (
         response > threshold_rel * response.max())
     peak[:2, :] = peak[-2:, :] = peak[:, :2] = peak[:, -2:] = False
