@@ -475,3 +475,25 @@ def test_planes_recovers_a_known_similarity_on_a_suburb():
     assert "planes" in result.fine.model
     err = result.T_ref_mov.apply(scene.moving) - truth
     assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.3  # metres, from 1.1 m off
+
+
+def _plane_observer(*, seen: int | None = None):
+    """Vertical distances to the plane z = 0 (a level surface); only the first ``seen`` points
+    observe it where given."""
+    def observe(q):
+        ok = np.ones(len(q), bool)
+        if seen is not None:
+            ok[seen:] = False
+        return q[:, 2].copy(), np.tile([0.0, 0.0, 1.0], (len(q), 1)), ok
+    return observe
+
+
+def test_a_converged_fit_has_settled_and_one_that_broke_off_has_settled_nowhere():
+    rng = np.random.default_rng(3)
+    q = np.column_stack([rng.uniform(-500, 500, (400, 2)), rng.normal(2.0, 0.05, 400)])
+    fit = solve_helmert(q, _plane_observer(), hold_displacement=5.0)
+    assert fit.converged
+    assert abs(np.median(fit.T.apply(q)[:, 2])) < 0.01  # metres: the block is on the plane
+    assert fit.wander < 0.05  # the last iterates lie within a few centimetres of the answer
+    broke = solve_helmert(q, _plane_observer(seen=5), hold_displacement=5.0)
+    assert not broke.converged and broke.wander == np.inf

@@ -65,8 +65,9 @@ class HelmertFit:
     converged: bool
     # how far the last few iterates lie from the answer (the largest displacement of a point of
     # the block between the answer and the poses of the last ``CYCLE_LAGS[-1]`` steps): an
-    # iteration that ends at its limit stepping back and forth has settled to within this
-    wander: float = 0.0
+    # iteration that ends at its limit stepping back and forth has settled to within this;
+    # inf where the iteration broke off (too few observations, a runaway step)
+    wander: float = math.inf
 
 
 def design_matrix(q: np.ndarray, g: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -208,6 +209,7 @@ def solve_helmert(
     sigma0 = float("nan")
     last = None  # the final iteration's scaled design rows, weights, distances and positions
     recent: list[tuple[Transform, float]] = []  # the latest poses and the steps that made them
+    wander = math.inf  # a fit that broke off (too few observations, a runaway) settled nowhere
     for it in range(1, max_iterations + 1):
         q = T.apply(q0)
         r, g, ok = observe(q)
@@ -242,11 +244,14 @@ def solve_helmert(
         if it > huber_iterations and (moved < tol
                                       or _in_cycle(recent, q0, tol=tol, sd_step=sd_step)):
             converged = True
+            wander = _wander(recent, q0)
             break
+    else:  # the iteration limit
+        wander = _wander(recent, q0)
     sigma = _precision(N, N_free, sigma0, last, observe, lever)
     return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
                       int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
-                      converged, _wander(recent, q0))
+                      converged, wander)
 
 
 def _wander(recent: list[tuple[Transform, float]], q0: np.ndarray) -> float:
