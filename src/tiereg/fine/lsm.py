@@ -237,9 +237,8 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
         close = _within(lidar, q[:, :2], reach)
         if len(close) < MIN_LIDAR:
             return fit, lidar
-        near = (SegmentPlanes(lidar, q, spacing=reference.spacing) if method == "planes"
-                else nearest_plane_observer(close, neighbours=SURFACE_POINTS, weighted=True,
-                                            reach=reach))
+        # planes segments the lidar read; lsm's patches see only the lidar within a reach
+        near = _surface_observer(method, lidar if method == "planes" else close, q, reference)
         again = solve_helmert(q, near, hold_displacement=hold, biweight_from_start=True)
         if again.n_observed < 10:
             return fit, lidar

@@ -259,8 +259,12 @@ def _wander(recent: list[tuple[Transform, float]], q0: np.ndarray) -> float:
     each earlier one (0 with fewer than two)."""
     if len(recent) < 2:
         return 0.0
-    end = recent[-1][0].apply(q0)
-    return max(float(np.max(np.abs(end - T.apply(q0)))) for T, _ in recent[:-1])
+    return max(_apart(recent[-1][0], T, q0) for T, _ in recent[:-1])
+
+
+def _apart(A: Transform, B: Transform, q0: np.ndarray) -> float:
+    """The largest displacement of a coordinate of a point of ``q0`` between poses A and B."""
+    return float(np.max(np.abs(A.apply(q0) - B.apply(q0))))
 
 
 def _in_cycle(recent: list[tuple[Transform, float]], q0: np.ndarray, *, tol: float,
@@ -275,7 +279,7 @@ def _in_cycle(recent: list[tuple[Transform, float]], q0: np.ndarray, *, tol: flo
     for lag in CYCLE_LAGS:
         if len(recent) <= lag:
             break
-        back = float(np.max(np.abs(T_now.apply(q0) - recent[-1 - lag][0].apply(q0))))
+        back = _apart(T_now, recent[-1 - lag][0], q0)
         if back < tol and max(step for _, step in recent[-lag:]) <= sd_step:
             return True
     return False
