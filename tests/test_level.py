@@ -83,7 +83,8 @@ def test_model_in_any_orientation_registers(suburb, tmp_path, cameras):
     assert _rms(result.T_ref_mov, model.T_ref_mov, model.xyz) < 0.5  # metres, after fine
     data = json.loads(result.to_json())
     assert data["levelling"]["tilt_deg"] > 40
-    # cameras know up from down; points try both, and not the model as it is (far from level)
+    # cameras know up from down; points try both, and the model as it is, far from level, only
+    # as a last resort (one of the senses was confident)
     assert data["levelling"]["tried"] == (1 if cameras else 2)
     assert data["T_initial"] is None
 
@@ -115,17 +116,42 @@ def test_a_model_upside_down_and_level_is_turned_over(suburb, tmp_path, cameras)
 
 @pytest.mark.slow
 def test_level_mountain_blocks_stay_level():
-    # high relief tilts the dominant plane of level tie points by more than 15 degrees; the model
-    # as it is must still be tried, and the answer be right (the upright levelled model, a few
-    # degrees from it, registers to the same place and may win: either is the truth)
+    # a small block on steep ground: its dominant plane leans by 61 degrees though the tie points
+    # are level; the model as it is must still be tried, and win (levelled by that plane, the
+    # model is 61 degrees off: 594 m off, not confident, when only the two senses were tried)
     from tiereg.level import vertical_from_points
 
-    spec = SceneSpec(kind="mountains", seed=64, world_size_m=4000.0, lidar_size_m=3000.0,
-                     block=ImageBlock(side_m=2200.0), survey=LidarSurvey(density_per_m2=0.5),
+    spec = SceneSpec(kind="mountains", seed=61, world_size_m=3000.0, lidar_size_m=2000.0,
+                     block=ImageBlock(side_m=800.0, tie_points_per_km2=1000.0),
+                     survey=LidarSurvey(density_per_m2=0.5),
                      hidden=HiddenTransform(heading_deg=75.0, scale=1.5), block_heading_deg=0.0)
     scene = make_scene(spec)
-    assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 15  # the premise
+    assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 45  # the premise
     result = register(scene.moving, scene.lidar.xyz, fine="none")
-    assert result.confident and result.levelling.tried == 3  # as it is, up, down
-    assert result.levelling.chosen in ("as is", "up")
+    assert result.confident and result.levelling.tried == 3  # up, down, then as it is
+    assert result.levelling.chosen == "as is"
     assert _rms(result.T_ref_mov, scene.T_ref_mov, scene.moving) < 5.0  # metres, coarse only
+
+
+def test_points_are_tried_as_they_are_whatever_their_plane_leans():
+    from tiereg.level import Vertical, starting_poses
+
+    centre = np.array([10.0, -5.0, 2.0])
+    for tilt_deg in (2.0, 30.0, 70.0):
+        t = np.radians(tilt_deg)
+        v = Vertical((float(np.sin(t)), 0.0, float(np.cos(t))), "points", False, 0.05)
+        poses = {p.name: p for p in starting_poses(v, centre)}
+        assert set(poses) == ({"as is", "down"} if tilt_deg < 15 else {"as is", "up", "down"})
+        as_is = poses["as is"]
+        np.testing.assert_array_equal(as_is.T.matrix, np.eye(4))
+        assert not as_is.free_tilt  # level data: no plane fitted to their heights
+        # beyond MAX_GROUND_TILT_DEG (40) the points as they are come last, as a last resort
+        assert as_is.last_resort == (tilt_deg > 40)
+        assert (list(poses)[-1] == "as is") == (tilt_deg > 40)
+        for name in poses.keys() - {"as is"}:  # each levelled pose turns its normal onto +z
+            sense = 1.0 if name == "up" else -1.0
+            R = poses[name].T.matrix[:3, :3]
+            np.testing.assert_allclose(R @ (sense * np.array(v.up)), [0, 0, 1], atol=1e-12)
+            assert not poses[name].last_resort
+    cams = Vertical((0.6, 0.0, 0.8), "cameras", True, 0.05)
+    assert [p.name for p in starting_poses(cams, centre)] == ["up"]

@@ -27,6 +27,7 @@ from .fine import FineResult
 from .io import PointSource, as_point_source
 from .level import (
     MIN_CAMERA_TILT_DEG,
+    StartingPose,
     Vertical,
     starting_poses,
     vertical_from_cameras,
@@ -208,14 +209,18 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
 def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
                        **options: Any) -> RegistrationResult:
     """Register the model from each of the orientations ``vertical`` proposes
-    (:func:`~tiereg.level.starting_poses`); the answer whose registration is confident (then the
-    more confident) wins, and two confident answers that disagree are no answer."""
+    (:func:`~tiereg.level.starting_poses`; a last resort only where none before it is
+    confident); the answer whose registration is confident (then the more confident) wins, and
+    two confident answers that disagree are no answer."""
     centre = moving.xyz[moving.keep].mean(axis=0)  # the levelling turns about it
-    poses = starting_poses(vertical, centre)
+    poses: list[StartingPose] = []
     results: list[RegistrationResult] = []
-    for pose in poses:
+    for pose in starting_poses(vertical, centre):
+        if pose.last_resort and any(r.confident for r in results):
+            continue
         r = _register_from(moving, results[0].reference if results else reference,
                            initial=pose.T, free_tilt=pose.free_tilt, **options)
+        poses.append(pose)
         results.append(replace(r, T_initial=None))
     best = max(results, key=lambda r: (r.confident, r.confidence))
     reasons = list(best.reasons)
