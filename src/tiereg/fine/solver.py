@@ -191,11 +191,7 @@ def solve_helmert(
     towards the outliers again.
     """
     q0 = np.asarray(q0, dtype=np.float64)
-    centre = q0.mean(axis=0)
-    extent = q0 - centre
-    radius_xy = float(np.sqrt(np.mean(extent[:, 0] ** 2 + extent[:, 1] ** 2))) or 1.0
-    # displacement of the block per unit of each parameter: edge for scale and rotations
-    lever = np.array([radius_xy, radius_xy, radius_xy, radius_xy, 1.0, 1.0, 1.0])
+    centre, lever = _levers(q0)
     tol = hold_displacement / 1000 if tol_displacement is None else tol_displacement
     held = [PARAMETERS.index(p) for p in fixed]
     T = Transform.identity()
@@ -203,8 +199,7 @@ def solve_helmert(
     scale_r = float("nan")
     converged = False
     it = 0
-    n = len(q0)
-    w_all, r_all = np.zeros(n), np.full(n, np.nan)
+    w_all, r_all = np.zeros(len(q0)), np.full(len(q0), np.nan)
     N, N_free = np.eye(7), list(range(7))
     sigma0 = float("nan")
     last = None  # the final iteration's scaled design rows, weights, distances and positions
@@ -222,9 +217,7 @@ def solve_helmert(
             scale_r = max(nmad(rr), 1e-12)
         if it == huber_iterations + 1:  # holds made far from the answer were provisional
             held = [PARAMETERS.index(p) for p in fixed]
-        w = robust_weights(rr / scale_r, tukey=it > huber_iterations)
-        if w.sum() < 10:  # everything beyond the biweight's reach: keep descending with Huber
-            w = robust_weights(rr / scale_r, tukey=False)
+        w = _weights(rr / scale_r, tukey=it > huber_iterations)
         # parameters the data cannot determine are held (``held`` grows)
         Af, N, N_free, step_scaled, sigma0, sd_step = _normal_step(
             A, w, rr, lever, held, scale_r=scale_r, hold_displacement=hold_displacement)
@@ -235,10 +228,7 @@ def solve_helmert(
         last = (Af, w, rr, q[ok], g[ok])
         dT = increment(step, centre)
         T = dT @ T
-        w_all[:] = 0.0
-        w_all[np.flatnonzero(ok)] = w
-        r_all[:] = np.nan
-        r_all[np.flatnonzero(ok)] = rr
+        w_all, r_all = _scattered(ok, w, 0.0), _scattered(ok, rr, np.nan)
         moved = float(np.max(np.abs(step_scaled)))  # the step's largest displacement
         recent = [*recent[-CYCLE_LAGS[-1]:], (T, moved)]
         if it > huber_iterations and (moved < tol
@@ -252,6 +242,30 @@ def solve_helmert(
     return HelmertFit(T, centre, sigma, tuple(PARAMETERS[i] for i in sorted(held)), sigma0,
                       int((w_all > 0.5).sum()), int(np.isfinite(r_all).sum()), w_all, r_all, it,
                       converged, wander)
+
+
+def _levers(q0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The block's centre, and its displacement per unit of each parameter: the RMS radius in
+    plan for scale and rotations, 1 for the shifts."""
+    centre = q0.mean(axis=0)
+    extent = q0 - centre
+    radius_xy = float(np.sqrt(np.mean(extent[:, 0] ** 2 + extent[:, 1] ** 2))) or 1.0
+    return centre, np.array([radius_xy, radius_xy, radius_xy, radius_xy, 1.0, 1.0, 1.0])
+
+
+def _weights(u: np.ndarray, *, tukey: bool) -> np.ndarray:
+    """Robust weights of the standardised residuals ``u``: the biweight where ``tukey``, unless
+    it leaves fewer than 10 observations (everything beyond its reach: keep descending with
+    Huber's)."""
+    w = robust_weights(u, tukey=tukey)
+    return robust_weights(u, tukey=False) if tukey and w.sum() < 10 else w
+
+
+def _scattered(ok: np.ndarray, values: np.ndarray, fill: float) -> np.ndarray:
+    """``values`` at the positions where ``ok`` is set, ``fill`` elsewhere."""
+    out = np.full(len(ok), fill)
+    out[np.flatnonzero(ok)] = values
+    return out
 
 
 def _wander(recent: list[tuple[Transform, float]], q0: np.ndarray) -> float:
