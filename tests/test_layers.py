@@ -2,6 +2,7 @@
 the stages, the pipeline and the command line on top, and no import that runs back up.
 
 Read from the source's own import statements (those inside functions too), not by importing.
+The size of its modules and functions is read the same way.
 """
 
 from __future__ import annotations
@@ -102,3 +103,30 @@ def test_the_report_measures_heights_without_registering_again():
     graph = _graph()
     assert "evaluate" in graph["report"]
     assert not graph["report"] & {"pipeline", "stages", "cli", "cli_options"}
+
+
+MAX_FUNCTION_LINES = 80  # a function reads at one sitting
+MAX_MODULE_LINES = 600  # a module holds one idea
+
+
+def _sizes() -> tuple[dict[str, int], dict[str, int]]:
+    """Lines of every module and of every function (methods and nested ones included)."""
+    modules, functions = {}, {}
+    for path in sorted(ROOT.rglob("*.py")):
+        name = str(path.relative_to(ROOT))
+        text = path.read_text()
+        modules[name] = text.count("\n")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                functions[f"{name}:{node.name}"] = node.end_lineno - node.lineno + 1
+    return modules, functions
+
+
+def test_modules_and_functions_stay_readable():
+    modules, functions = _sizes()
+    assert "fine/solver.py:solve_helmert" in functions and "pipeline.py" in modules
+    assert functions["pipeline.py:register"] > 10  # the reader measures what it should
+    long_functions = {k: v for k, v in functions.items() if v > MAX_FUNCTION_LINES}
+    long_modules = {k: v for k, v in modules.items() if v > MAX_MODULE_LINES}
+    assert not long_functions, f"functions over {MAX_FUNCTION_LINES} lines: {long_functions}"
+    assert not long_modules, f"modules over {MAX_MODULE_LINES} lines: {long_modules}"
