@@ -117,3 +117,22 @@ def test_a_tile_whose_header_understates_its_bounds_is_refused(tiles):
     with pytest.raises(InputError, match="outside the tile's header bounds"):
         grid_tile(shrunk, spec, stats=("mean",), origin=None, surface=True, first_only=True,
                   median_sample=15, seed=0)
+
+
+def _environ(name: str) -> str | None:
+    import os
+
+    return os.environ.get(name)
+
+
+def test_local_workers_keep_glibc_malloc_tuning_and_the_rest_of_dasks_environment():
+    # Dask starts worker processes with MALLOC_TRIM_THRESHOLD_, which turns off glibc's dynamic
+    # mmap threshold: the tile tasks' arrays were then mapped afresh each time (15 % more CPU)
+    import dask
+
+    before = dask.config.get("distributed.nanny.pre-spawn-environ")
+    assert "MALLOC_TRIM_THRESHOLD_" in before  # the default this guards against
+    with cluster(workers=1) as c:
+        assert list(c.run(_environ, "MALLOC_TRIM_THRESHOLD_").values()) == [None]
+        assert list(c.run(_environ, "OMP_NUM_THREADS").values()) == ["1"]
+    assert dask.config.get("distributed.nanny.pre-spawn-environ") == before

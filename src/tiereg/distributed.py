@@ -66,10 +66,27 @@ def cluster(*, workers: int | None = None, scheduler: str | None = None,
         return
     if not (isinstance(workers, int) and workers >= 1):
         raise InputError(f"`workers` must be a whole number of at least 1, got {workers}")
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                      dashboard_address=":0", silence_logs=logging.ERROR) as local, \
+    with _malloc_as_glibc_sets_it(), \
+            LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
+                         dashboard_address=":0", silence_logs=logging.ERROR) as local, \
             Client(local) as client:
         yield client
+
+
+@contextlib.contextmanager
+def _malloc_as_glibc_sets_it() -> Iterator[None]:
+    """Local workers started without Dask's ``MALLOC_TRIM_THRESHOLD_``: setting it turns off
+    glibc's dynamic mmap threshold, so every array of the tile tasks (tens of MB each) is mapped
+    afresh and paged in again; measured on 16 tiles of 10 million points in all, decoding took
+    12 % more CPU and gridding 15 % more with it. The workers' memory is bounded by the tasks in
+    flight (:data:`IN_FLIGHT_PER_WORKER`), not by trimming."""
+    import dask
+
+    key = "distributed.nanny.pre-spawn-environ"
+    environ = {k: v for k, v in (dask.config.get(key, default=None) or {}).items()
+               if k != "MALLOC_TRIM_THRESHOLD_"}
+    with dask.config.set({key: environ}):
+        yield
 
 
 def n_workers(client: Any) -> int:
