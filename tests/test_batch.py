@@ -140,7 +140,8 @@ def test_window_reference_is_the_base_grid_cut_and_reads_only_its_tiles(archive)
     from tiereg.mosaic import window_reference
 
     root, _ = archive
-    ref = prepare_archive_reference(TileIndex.build(root / "tiles"), base_cell=20.0)
+    # a base as fine as the window's own (1.25 point spacings of 4.5 m): the base grid is cut
+    ref = prepare_archive_reference(TileIndex.build(root / "tiles"), base_cell=5.0)
     box = (-700.0, -300.0, -320.0, 100.0)  # local frame; meets 4 of the 16 tiles
     win = window_reference(ref, box)
     s, w = ref.base.spec, win.base.spec
@@ -151,3 +152,33 @@ def test_window_reference_is_the_base_grid_cut_and_reads_only_its_tiles(archive)
     assert len(win.source.paths) == 4 and np.array_equal(win.origin, ref.origin)
     pts = np.concatenate(list(win.local_chunks()))
     assert pts[:, 0].min() >= box[0] - 1e-6 and pts[:, 0].max() <= box[2] + 1e-6
+
+
+def test_window_of_a_coarse_archive_base_is_gridded_from_its_tiles(archive, monkeypatch):
+    """A wide archive's base grid is coarse (capped cells a side); a judged window is gridded
+    anew from its own tiles at 1.25 point spacings (4.5 m here: 5.6 m cells, not 20 m), in the
+    process that uses it: pickling it to a worker reads no point."""
+    import pickle
+
+    from tiereg.archive import ArchiveSource, TileIndex
+    from tiereg.distributed import prepare_archive_reference
+    from tiereg.grid import GridAccumulator
+    from tiereg.mosaic import window_reference
+
+    root, _ = archive
+    ref = prepare_archive_reference(TileIndex.build(root / "tiles"), base_cell=20.0)
+    box = (-700.0, -300.0, -320.0, 100.0)
+    with monkeypatch.context() as m:
+        m.setattr(ArchiveSource, "chunks", lambda *a, **k: pytest.fail("read on pickling"))
+        win = pickle.loads(pickle.dumps(window_reference(ref, box)))
+    spec = win.base.spec
+    assert 5.0 < spec.cell_size < 6.5 and np.array_equal(win.origin, ref.origin)
+    assert spec.bounds[0] <= box[0] < spec.bounds[0] + spec.cell_size
+    assert spec.bounds[3] >= box[3] > spec.bounds[3] - spec.cell_size
+    acc = GridAccumulator(spec, stats=("mean",))
+    for chunk in win.local_chunks():  # the window's points, as the base grid was made of them
+        acc.add(chunk)
+    expected = acc.result()
+    np.testing.assert_array_equal(win.base.count, expected.count)
+    np.testing.assert_allclose(win.base.stats["mean"], expected.stats["mean"], rtol=0, atol=1e-9)
+    assert win.base.count.sum() > 0.8 * 0.05 * 380 * 400  # 0.05 points per m2 of the box

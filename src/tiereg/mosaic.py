@@ -9,10 +9,10 @@ prepared reference (its base grid aggregated to the tie cell: the overview pyram
 reference's own, built once per archive) and swept side by side on the cluster
 (:func:`~tiereg.coarse.search.search`, heights). The best distinct places are then *judged*:
 each is registered (:func:`tiereg.register`, the usual coarse and fine stages and verdict) on a
-window of the full-resolution reference around it, one search grid wide at the finest level,
-whose source reads only the tiles there, at the scales within an octave of the screening's
-(:func:`judge_scales`). The answer is confident only when a judged window's
-answer is confident and no other judged window is confidently somewhere else.
+window of the reference around it, one search grid wide at the finest level, whose source reads
+only the tiles there, gridded at their own spacing (:func:`window_reference`), at the scales
+within an octave of the screening's (:func:`judge_scales`). The answer is confident only when a
+judged window's answer is confident and no other judged window is confidently somewhere else.
 
 A scale range wider than an octave is searched as octaves, each with windows of its own size.
 """
@@ -31,10 +31,12 @@ from .archive import ArchiveSource, Box
 from .coarse.scoring import HEIGHTS, MAX_REFERENCE_CELLS, Scorer
 from .errors import InputError
 from .grid import Grid, GridSpec, cell_size_from_density
+from .io import PointSource
 from .parallel import map_threads
 from .pipeline import RegistrationResult, register
 from .points import gross_outliers, validate_points
-from .reference import Reference
+from .progress import no_progress
+from .reference import BASE_SPACINGS, MAX_BASE_SIDE, Reference, point_spacing
 
 TOP = 3  # distinct places judged
 SCREEN_LEVEL = 3  # tie cells a screening cell (the sweep: 2): chosen on the dev blocks
@@ -81,16 +83,34 @@ def crop(grid: Grid, box: Box) -> Grid:
     return Grid(sub, grid.count[sl], {k: v[sl] for k, v in grid.stats.items()}, grid.crs_wkt)
 
 
-def window_reference(ref: Reference, box: Box) -> Reference:
-    """``ref`` seen through ``box`` (its local frame): the base grid cropped, and of an archive
-    only the tiles that meet the window read."""
+def window_reference(ref: Reference, box: Box, *, regrid: bool = True) -> Reference:
+    """``ref`` seen through ``box`` (its local frame). Of an archive only the tiles that meet
+    the window are read, and with ``regrid`` gridded anew at their own spacing
+    (:func:`window_cell`) where the archive's base grid is coarser: a base capped at
+    :data:`~tiereg.reference.MAX_BASE_SIDE` cells over a wide mosaic is tens of metres, too
+    coarse for the fits that judge a small block (gridded in the task that registers the
+    window, on first use). Otherwise the base grid is cut."""
     source = ref.source
     if isinstance(source, ArchiveSource):
         o = ref.origin
         source = source.index.source((box[0] + o[0], box[1] + o[1], box[2] + o[0],
                                       box[3] + o[1]))
+        cell = window_cell(source, box)
+        if regrid and cell < ref.base_cell:
+            spec = GridSpec.from_bounds(*box, cell)
+            return Reference(source, ref.origin, None, ref.first_returns_only,
+                             source_args=ref.source_args, _pending=(spec, no_progress))
     return Reference(source, ref.origin, crop(ref.base, box), ref.first_returns_only,
                      source_args=ref.source_args)
+
+
+def window_cell(source: PointSource, box: Box) -> float:
+    """The base cell of a window's own grid: that of a reference of the window's tiles alone
+    (:func:`~tiereg.reference.base_cell_for`, :data:`~tiereg.reference.BASE_SPACINGS` point
+    spacings), coarser where the window would be more than
+    :data:`~tiereg.reference.MAX_BASE_SIDE` cells a side."""
+    return max(BASE_SPACINGS * point_spacing(source),
+               max(box[2] - box[0], box[3] - box[1]) / (MAX_BASE_SIDE - 2))
 
 
 def windows(extent: Box, size: float, step: float) -> list[Box]:
@@ -120,7 +140,7 @@ def screen_window(overview: Reference, box: Box, moving: np.ndarray, *, tie_cell
     the sweep alone (every :data:`KAPPA_STEP_DEG`, scales :data:`SIGMA_RATIO` apart, at
     ``level`` tie cells a search cell; a task)."""
     try:
-        wref = window_reference(overview, box)
+        wref = window_reference(overview, box, regrid=False)  # the overview's cells
     except InputError:
         return None
     scorer = Scorer(moving, wref, tie_cell, level,

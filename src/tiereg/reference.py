@@ -173,13 +173,22 @@ class Reference:
 
     def __reduce__(self):
         """Pickled (to another process) without its lock and its caches, which each process
-        makes anew."""
+        makes anew; a base grid not made yet is made where it is first used."""
+        if self._base is None and not self._made:
+            spec, _ = self._pending
+            return (_rebuilt_pending, (self.source, self.origin, self._first_returns_only,
+                                       self.source_args, spec))
         return (_rebuilt, (self.source, self.origin, self.base, self.first_returns_only,
                            self.source_args))
 
 
 def _rebuilt(source, origin, base, first_returns_only, source_args) -> Reference:
     return Reference(source, origin, base, first_returns_only, source_args=source_args)
+
+
+def _rebuilt_pending(source, origin, first_returns, source_args, spec) -> Reference:
+    return Reference(source, origin, None, first_returns, source_args=source_args,
+                     _pending=(spec, no_progress))
 
 
 def surface_mask(records, first_only: bool) -> np.ndarray:
