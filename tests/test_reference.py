@@ -129,6 +129,27 @@ def test_reference_open_reads_headers_now_and_grids_once_on_first_use(monkeypatc
     assert len(passes) == 2 * n  # and never again
 
 
+
+def test_an_opened_reference_sent_to_another_process_is_gridded_once_before(monkeypatch):
+    """Pickled (to a worker) before its first use, an opened reference is gridded in the sender,
+    once, and the copies carry the grid: the workers read no point to have it."""
+    import pickle
+
+    import tiereg.reference as reference_module
+
+    path = Path(__file__).parent / "data" / "autzen-bmx-2010.las"
+    passes = []
+    real_grid = reference_module._grid
+    monkeypatch.setattr(reference_module, "_grid",
+                        lambda *args: passes.append(1) or real_grid(*args))
+    ref = Reference.open(str(path))
+    copies = [pickle.loads(pickle.dumps(ref)) for _ in range(3)]
+    n = len(passes)
+    assert n >= 1
+    for copy in copies:
+        assert np.array_equal(copy.base["mean"], ref.base["mean"], equal_nan=True)
+    assert len(passes) == n
+
 def _forest_edge(tmp_path):
     """A 1 m grid of lidar: open ground (class 2, one return a pulse) west of x = 20 m, a
     canopy east of it (its first returns classed 5, of pulses that split in two) 15 m up."""

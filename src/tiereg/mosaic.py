@@ -99,7 +99,8 @@ def window_reference(ref: Reference, box: Box, *, regrid: bool = True) -> Refere
         if regrid and cell < ref.base_cell:
             spec = GridSpec.from_bounds(*box, cell)
             return Reference(source, ref.origin, None, ref.first_returns_only,
-                             source_args=ref.source_args, _pending=(spec, no_progress))
+                             source_args=ref.source_args, _pending=(spec, no_progress),
+                             _grid_where_used=True)
     return Reference(source, ref.origin, crop(ref.base, box), ref.first_returns_only,
                      source_args=ref.source_args)
 

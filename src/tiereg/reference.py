@@ -57,6 +57,9 @@ class Reference:
     source_args: tuple[str, ...] = ()  # the paths it was read from, when known
     _pending: tuple | None = field(default=None, repr=False, compare=False)  # (spec, progress)
     _made: list = field(default_factory=list, repr=False, compare=False)  # [base, first only]
+    # pickled before its base grid is made, the receiver grids it (a mosaic's judged window, in
+    # the task that uses it); otherwise the base grid is made first and sent, made once
+    _grid_where_used: bool = field(default=False, repr=False, compare=False)
 
     @classmethod
     def open(cls, paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], *,
@@ -173,8 +176,9 @@ class Reference:
 
     def __reduce__(self):
         """Pickled (to another process) without its lock and its caches, which each process
-        makes anew; a base grid not made yet is made where it is first used."""
-        if self._base is None and not self._made:
+        makes anew; with ``_grid_where_used`` a base grid not made yet is made where it is
+        first used."""
+        if self._grid_where_used and self._base is None and not self._made:
             spec, _ = self._pending
             return (_rebuilt_pending, (self.source, self.origin, self._first_returns_only,
                                        self.source_args, spec))
@@ -188,7 +192,7 @@ def _rebuilt(source, origin, base, first_returns_only, source_args) -> Reference
 
 def _rebuilt_pending(source, origin, first_returns, source_args, spec) -> Reference:
     return Reference(source, origin, None, first_returns, source_args=source_args,
-                     _pending=(spec, no_progress))
+                     _pending=(spec, no_progress), _grid_where_used=True)
 
 
 def surface_mask(records, first_only: bool) -> np.ndarray:
