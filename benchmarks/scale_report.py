@@ -96,7 +96,8 @@ def _mosaic_lines(m: dict) -> list[str]:
         out.append(f"- peak memory per worker over the batch (VmHWM): at most {max(peaks):.0f} MB")
     if one:
         two = {r["block"]: r for r in rows if r["block"] in one}
-        out += ["", "The same blocks on 1 worker and on 2 (separate runs: the machine's load differs):", "",
+        out += ["", "The same blocks on 1 worker and on 2 (separate runs: the machine's load "
+                "differs):", "",
                 "| block | 1 worker: wall s | CPU s | peak MB | 2 workers: wall s | CPU s | "
                 "peak MB | same answer |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
         for b in sorted(one):
