@@ -129,7 +129,6 @@ def test_reference_open_reads_headers_now_and_grids_once_on_first_use(monkeypatc
     assert len(passes) == 2 * n  # and never again
 
 
-
 def test_an_opened_reference_sent_to_another_process_is_gridded_once_before(monkeypatch):
     """Pickled (to a worker) before its first use, an opened reference is gridded in the sender,
     once, and the copies carry the grid: the workers read no point to have it."""
@@ -149,6 +148,7 @@ def test_an_opened_reference_sent_to_another_process_is_gridded_once_before(monk
     for copy in copies:
         assert np.array_equal(copy.base["mean"], ref.base["mean"], equal_nan=True)
     assert len(passes) == n
+
 
 def _forest_edge(tmp_path):
     """A 1 m grid of lidar: open ground (class 2, one return a pulse) west of x = 20 m, a
