@@ -106,14 +106,23 @@ def test_a_prepared_reference_serves_many_registrations():
         assert result.confident and np.hypot(*err[0, :2]) < 0.1 * result.cell_size
 
 
-def test_reference_open_reads_headers_now_and_grids_once_on_first_use(monkeypatch):
+AUTZEN_LAS = Path(__file__).parent / "data" / "autzen-bmx-2010.las"
+
+
+@pytest.fixture
+def grid_passes(monkeypatch) -> list:
+    """The passes over a reference's points (``_grid`` calls), one entry each."""
     import tiereg.reference as reference_module
 
-    path = Path(__file__).parent / "data" / "autzen-bmx-2010.las"
-    passes = []
+    passes: list = []
     real_grid = reference_module._grid
     monkeypatch.setattr(reference_module, "_grid",
                         lambda *args: passes.append(1) or real_grid(*args))
+    return passes
+
+
+def test_reference_open_reads_headers_now_and_grids_once_on_first_use(grid_passes):
+    passes, path = grid_passes, AUTZEN_LAS
     ref = Reference.open(str(path))
     assert passes == []  # the header alone: where the points lie and the base grid's cells
     same = prepare_reference(open_points(str(path)))
@@ -129,25 +138,18 @@ def test_reference_open_reads_headers_now_and_grids_once_on_first_use(monkeypatc
     assert len(passes) == 2 * n  # and never again
 
 
-def test_an_opened_reference_sent_to_another_process_is_gridded_once_before(monkeypatch):
+def test_an_opened_reference_sent_to_another_process_is_gridded_once_before(grid_passes):
     """Pickled (to a worker) before its first use, an opened reference is gridded in the sender,
     once, and the copies carry the grid: the workers read no point to have it."""
     import pickle
 
-    import tiereg.reference as reference_module
-
-    path = Path(__file__).parent / "data" / "autzen-bmx-2010.las"
-    passes = []
-    real_grid = reference_module._grid
-    monkeypatch.setattr(reference_module, "_grid",
-                        lambda *args: passes.append(1) or real_grid(*args))
-    ref = Reference.open(str(path))
+    ref = Reference.open(str(AUTZEN_LAS))
     copies = [pickle.loads(pickle.dumps(ref)) for _ in range(3)]
-    n = len(passes)
+    n = len(grid_passes)
     assert n >= 1
     for copy in copies:
         assert np.array_equal(copy.base["mean"], ref.base["mean"], equal_nan=True)
-    assert len(passes) == n
+    assert len(grid_passes) == n
 
 
 def _forest_edge(tmp_path):
