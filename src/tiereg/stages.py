@@ -26,7 +26,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference
 from .surface import LocalSurface, SurfaceSampler
 from .transform import Transform
-from .verdict import Verdict, judge_refined
+from .verdict import Verdict, imprecision, judge_refined
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +218,8 @@ def fine_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start: C
                method: str, coarse_method: str) -> FineStage:
     """The fine registration from ``start``'s pose (:func:`~tiereg.fine.register_fine`), unless
     ``method`` is ``"none"`` or no pose explains the heights; a refusal costs the confidence
-    unless the verdict's refined fit vouches for the coarse pose."""
+    unless the verdict's refined fit vouches for the coarse pose, and so does an answer less
+    precise than the verdict's noise allows (:func:`~tiereg.verdict.imprecision`)."""
     if method == "none":
         return FineStage(start.T_local, None, start.confident, start.confidence,
                          note="not asked for (`fine` none)")
@@ -244,6 +245,11 @@ def fine_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start: C
         reasons.append(_refusal_reason(result, coarse_method))
     else:
         T_local = result.T_increment @ T_local
+        imprecise = (imprecision(start.verdict, result.fit.sigma[4:7])
+                     if start.verdict is not None else None)
+        if imprecise and confident:
+            confident = False
+            reasons.append(imprecise)
     if result.held and not result.refused:
         warnings.append(f"the data do not determine {', '.join(result.held)} (flat or "
                         "featureless ground): held at the coarse answer")
