@@ -111,6 +111,41 @@ def test_copc_tiles_are_read_by_spatial_query():
     assert 0 < len(coarse) < len(every)  # the octree's coarse levels only
 
 
+def _cell_means(xyz: np.ndarray, ref) -> tuple[np.ndarray, np.ndarray]:
+    """Counts and mean heights of ``xyz`` (file coordinates) in ``ref``'s base cells, the slow
+    obvious way: a dictionary of cells."""
+    spec, o = ref.base.spec, ref.origin
+    cells: dict[tuple[int, int], list[float]] = {}
+    for x, y, z in xyz - o:
+        row, col = spec.cell_coordinates(x, y)
+        cells.setdefault((int(np.floor(row)), int(np.floor(col))), []).append(z)
+    count, mean = np.zeros(spec.shape, np.int64), np.full(spec.shape, np.nan)
+    for (r, c), zs in cells.items():
+        count[r, c], mean[r, c] = len(zs), np.mean(zs)
+    return count, mean
+
+
+@pytest.mark.parametrize("base_cell, levels", [(100.0, False), (800.0, True)])
+def test_copc_tiles_grid_a_coarse_base_from_their_octree_levels(base_cell, levels):
+    from tiereg.distributed import COPC_POINTS_PER_CELL_SIDE, prepare_archive_reference
+
+    path = DATA / "simple.copc.laz"
+    index = TileIndex.build([path])
+    ref = prepare_archive_reference(index, base_cell=base_cell)
+    resolution = ref.base.spec.cell_size / COPC_POINTS_PER_CELL_SIDE
+    assert (resolution > index.tiles[0].spacing) == levels  # 121 m between points
+    with laspy.CopcReader.open(path) as reader:
+        records = reader.query(resolution=resolution) if levels else reader.query()
+    keep = surface_mask(records, ref.first_returns_only)
+    xyz = np.column_stack([records.x, records.y, records.z])[keep]
+    count, mean = _cell_means(xyz, ref)
+    np.testing.assert_array_equal(ref.base.count, count)
+    np.testing.assert_allclose(ref.base["mean"], mean, rtol=0, atol=1e-9, equal_nan=True)
+    every = len(laspy.read(path).points)
+    # at 800 m cells the root level alone (24 points of 1,065), at 100 m every point
+    assert (count.sum() < every / 10) if levels else (count.sum() >= every / 2)
+
+
 def test_no_tiles_and_mixed_crs_are_one_line_errors(tiles, tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
@@ -53,6 +54,12 @@ class Tile:
     @property
     def box(self) -> Box:
         return (self.mins[0], self.mins[1], self.maxs[0], self.maxs[1])
+
+    @property
+    def spacing(self) -> float:
+        """Mean point spacing: the square root of the header bounds' area per point."""
+        area = (self.maxs[0] - self.mins[0]) * (self.maxs[1] - self.mins[1])
+        return math.sqrt(max(area, 1e-12) / max(self.count, 1))
 
     def meets(self, box: Box) -> bool:
         """Whether the tile's header bounds meet ``box`` (edges included)."""
@@ -121,6 +128,28 @@ def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = Non
     if not (tile.copc and (box is not None or resolution is not None)):
         yield from _filtered(_records(tile, chunk_size), keep, box)
         return
+    yield from _filtered(_copc_query(tile, box, resolution), keep, box)
+
+
+def tile_columns(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = None,
+                 resolution: float | None = None, chunk_size: int = DEFAULT_CHUNK,
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]:
+    """The points of one tile as ``(x, y, z, kept)`` columns, chunk by chunk as
+    :func:`tile_chunks` reads them (fresh arrays: change them in place); ``kept``: what ``keep``
+    keeps (None without), left to the caller to apply with its own selection. With
+    ``resolution`` coarser than the tile's point spacing, a COPC tile gives only its octree
+    levels down to that spacing, in one chunk; other tiles give all their points."""
+    levels = tile.copc and resolution is not None and resolution > tile.spacing
+    chunks = _copc_query(tile, None, resolution) if levels else _records(tile, chunk_size)
+    for records in chunks:
+        kept = None if keep is None else np.asarray(keep(records), dtype=bool)
+        yield (np.asarray(records.x, dtype=np.float64), np.asarray(records.y, dtype=np.float64),
+               np.asarray(records.z, dtype=np.float64), kept)
+
+
+def _copc_query(tile: Tile, box: Box | None, resolution: float | None) -> Iterator:
+    """The laspy records of a COPC tile's octree nodes that meet ``box`` (all without), of its
+    levels down to ``resolution`` (all without), as one chunk."""
     import laspy
 
     try:
@@ -128,22 +157,9 @@ def tile_chunks(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = Non
             bounds = None if box is None else laspy.copc.Bounds(  # z: the whole tile
                 np.array([box[0], box[1], tile.mins[2] - 1.0]),
                 np.array([box[2], box[3], tile.maxs[2] + 1.0]))
-            records = reader.query(bounds=bounds, resolution=resolution)
-            yield from _filtered(iter([records]), keep, box)
+            yield reader.query(bounds=bounds, resolution=resolution)
     except read_errors() as exc:
         raise _read_failed(tile, exc) from None
-
-
-def tile_columns(tile: Tile, *, keep: Callable[[object], np.ndarray] | None = None,
-                 chunk_size: int = DEFAULT_CHUNK,
-                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]:
-    """All the points of one tile as ``(x, y, z, kept)`` columns, chunk by chunk as
-    :func:`tile_chunks` reads them (fresh arrays: change them in place); ``kept``: what ``keep``
-    keeps (None without), left to the caller to apply with its own selection."""
-    for records in _records(tile, chunk_size):
-        kept = None if keep is None else np.asarray(keep(records), dtype=bool)
-        yield (np.asarray(records.x, dtype=np.float64), np.asarray(records.y, dtype=np.float64),
-               np.asarray(records.z, dtype=np.float64), kept)
 
 
 def _records(tile: Tile, chunk_size: int) -> Iterator:

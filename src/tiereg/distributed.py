@@ -37,6 +37,10 @@ from .reference import Reference, reference_spec, surface_mask
 log = logging.getLogger(__name__)
 
 IN_FLIGHT_PER_WORKER = 4  # tile tasks submitted ahead per worker: bounds the workers' memory
+# a COPC tile gridded into an archive reference's base grid gives only its octree levels down to
+# this many points a cell side (about 16 points a cell where the data hold that many): a wide
+# archive's base cell is capped to many point spacings, and its coarse grids need no more
+COPC_POINTS_PER_CELL_SIDE = 4.0
 
 
 @contextlib.contextmanager
@@ -120,10 +124,12 @@ def tile_window(spec: GridSpec, tile: Tile, origin: np.ndarray | None) -> tuple[
 
 
 def grid_tile(tile: Tile, spec: GridSpec, *, stats: Sequence[str], origin: np.ndarray | None,
-              surface: bool, first_only: bool, median_sample: int, seed: int) -> PartialGrid:
+              surface: bool, first_only: bool, median_sample: int, seed: int,
+              resolution: float | None = None) -> PartialGrid:
     """Rasterize one tile into its window of ``spec`` (a task). ``origin``: subtracted from the
     points first (the local frame of a reference); ``surface``: only the points
-    :func:`~tiereg.archive.surface_mask` keeps."""
+    :func:`~tiereg.archive.surface_mask` keeps; ``resolution``: a COPC tile's octree levels
+    down to that point spacing only (:func:`~tiereg.archive.tile_columns`)."""
     window = tile_window(spec, tile, origin)
     r0, r1, c0, c1 = window or (0, 1, 0, 1)
     c, width = spec.cell_size, c1 - c0
@@ -131,7 +137,7 @@ def grid_tile(tile: Tile, spec: GridSpec, *, stats: Sequence[str], origin: np.nd
     acc = GridAccumulator(wspec, stats=stats, median_sample=median_sample, seed=seed)
     keep = (lambda r: surface_mask(r, first_only)) if surface else None
     lost = 0
-    for x, y, z, kept in tile_columns(tile, keep=keep):
+    for x, y, z, kept in tile_columns(tile, keep=keep, resolution=resolution):
         if origin is not None:
             x -= origin[0]
             y -= origin[1]
@@ -199,12 +205,13 @@ class GridMerger:
 def grid_tiles(tiles: Sequence[Tile], spec: GridSpec, *, stats: Sequence[str] = ("mean",),
                origin: np.ndarray | None = None, surface: bool = False,
                first_only: bool = False, median_sample: int = 15, client: Any = None,
-               progress: ProgressFactory | None = None, crs_wkt: str | None = None) -> Grid:
+               progress: ProgressFactory | None = None, crs_wkt: str | None = None,
+               resolution: float | None = None) -> Grid:
     """Grid ``tiles`` on ``spec``, a task per tile (on ``client``, else here), merged in tile
-    order."""
+    order; ``resolution``: COPC tiles give their octree levels down to it (:func:`grid_tile`)."""
     progress = progress or no_progress
     options = dict(stats=tuple(stats), origin=origin, surface=surface, first_only=first_only,
-                   median_sample=median_sample)
+                   median_sample=median_sample, resolution=resolution)
     merger = GridMerger(spec, stats)
     todo = [(i, t) for i, t in enumerate(tiles) if tile_window(spec, t, origin) is not None]
     bar = progress("gridding tiles", len(todo))
@@ -246,7 +253,9 @@ def prepare_archive_reference(index: TileIndex, *, base_cell: float, first_retur
                               progress: ProgressFactory | None = None) -> Reference:
     """The :class:`~tiereg.reference.Reference` of an archive, gridded a tile a task: the same
     base grid as :func:`~tiereg.reference.prepare_reference` on the same tiles (noise and
-    withheld points left out, first returns only where the tiles record returns)."""
+    withheld points left out, first returns only where the tiles record returns), except that
+    COPC tiles give only their octree levels down to :data:`COPC_POINTS_PER_CELL_SIDE` points
+    a cell side (all their points where the cell is that fine)."""
     if index.count == 0:
         raise InputError("the archive's tiles hold no points; give tiles with points in them")
     lo, hi = (np.asarray(b, dtype=np.float64) for b in index.bounds)
@@ -255,7 +264,7 @@ def prepare_archive_reference(index: TileIndex, *, base_cell: float, first_retur
                          "re-export it")
     origin, spec = reference_spec(lo, hi, base_cell)
     opts = dict(stats=("mean",), origin=origin, surface=True, client=client, progress=progress,
-                crs_wkt=index.crs_wkt)
+                crs_wkt=index.crs_wkt, resolution=spec.cell_size / COPC_POINTS_PER_CELL_SIDE)
     grid = grid_tiles(index.tiles, spec, first_only=first_returns, **opts)
     use_first = first_returns
     if use_first and not grid.mask.any():  # no return numbers recorded: use all points
