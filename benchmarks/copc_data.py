@@ -80,9 +80,9 @@ def write_copc(src: Path, dst: Path) -> int:
         node = np.floor((xyz[idx] - (centre - halfsize)) / (2.0 * halfsize / 2**level))
         flat = _flat(node)
         order = np.argsort(flat, kind="stable")
-        keys, starts = np.unique(flat[order], return_index=True)
-        for k, start in enumerate(starts):
-            sel = idx[order[start:starts[k + 1] if k + 1 < len(starts) else len(order)]]
+        _, starts = np.unique(flat[order], return_index=True)
+        for start, end in zip(starts, [*starts[1:], len(order)]):
+            sel = idx[order[start:end]]
             raw = np.ascontiguousarray(records[sel]).view(np.int8).ravel()
             key = node[order[start]].astype(np.int64)
             writer.AddNode(copc.VoxelKey(level, *map(int, key)), copc.VectorChar(raw))
