@@ -15,6 +15,12 @@ scale 0.25-4 (0.3048 and 3.2808: feet), tilt ~0.3 deg.
     python benchmarks/verdict.py               # all cases -> benchmarks/results/verdict.{md,json}
     python benchmarks/verdict.py --quick       # a handful of dev cases -> benchmarks/work/
     python benchmarks/verdict.py --half dev --jobs 2
+    python benchmarks/verdict.py --half dev --upside-down   # the same cases turned over
+
+``--upside-down`` turns every case's tie points over (180 degrees about the x axis through
+their centre) before registering them: level data upside down, as the points of a
+structure-from-motion model whose first camera looked down come out. The true pose then
+includes the turn; the cases are otherwise the same (results ``verdict-upside-down.*``).
 
 Each case runs ``tiereg.register(moving, "reference.laz")`` with default options in a process of
 its own, under a time limit and a memory limit (a case that breaks either, or raises, is a
@@ -102,11 +108,30 @@ def case_by_id(case_id: str) -> Case:
     raise SystemExit(f"no case {case_id!r}")
 
 
-def register_one(case_id: str, out: Path) -> None:
+def turned_over(moving: np.ndarray) -> np.ndarray:
+    """The turn of ``--upside-down``: 180 degrees about the x axis through the points' centre
+    (its own inverse)."""
+    c = moving.mean(axis=0)
+    F = np.diag([1.0, -1.0, -1.0, 1.0])
+    F[:3, 3] = c - F[:3, :3] @ c
+    return F
+
+
+def _variant_inputs(case: Case, truth: dict, variant: str) -> tuple[dict, np.ndarray]:
+    """The truth and the tie points of the case as ``variant`` gives them."""
+    moving = np.load(case.directory / "moving.npy")
+    if variant != "upside-down":
+        return truth, moving
+    F = turned_over(moving)
+    moving = moving @ F[:3, :3].T + F[:3, 3]
+    return {**truth, "T_ref_mov": (np.asarray(truth["T_ref_mov"]) @ F).tolist()}, moving
+
+
+def register_one(case_id: str, out: Path, variant: str = "") -> None:
     """Child: register the cached scene and write the outcome (or the exception) to ``out``."""
     case = case_by_id(case_id)
-    truth = json.loads((case.directory / "truth.json").read_text())
-    moving = np.load(case.directory / "moving.npy")
+    truth, moving = _variant_inputs(
+        case, json.loads((case.directory / "truth.json").read_text()), variant)
     row = describe(case, truth)
     try:
         import tiereg
@@ -114,7 +139,7 @@ def register_one(case_id: str, out: Path) -> None:
         t0 = time.perf_counter()
         result = tiereg.register(moving, str(case.directory / "reference.laz"))
         row["seconds"] = time.perf_counter() - t0
-        (case.directory / "RESULT.json").write_text(result.to_json())
+        (case.directory / _name("RESULT", variant)).write_text(result.to_json())
         row.update(evaluate(case, truth, result.to_dict(), moving))
     except Exception as exc:  # noqa: BLE001 -- recorded as a failure of the case
         row.update(status="failed", error=f"{type(exc).__name__}: {str(exc)[:300]}")
@@ -206,22 +231,27 @@ def evaluate(case: Case, truth: dict, d: dict, moving: np.ndarray) -> dict:
 
 
 # ------------------------------------------------------------------------------------- runs
-def rescore(case: Case) -> dict | None:
+def _name(stem: str, variant: str) -> str:
+    return f"{stem}-{variant}.json" if variant else f"{stem}.json"
+
+
+def rescore(case: Case, variant: str = "") -> dict | None:
     """The outcome again from the case's saved RESULT.json (no registration), or None."""
-    out, saved = case.directory / "outcome.json", case.directory / "RESULT.json"
+    out = case.directory / _name("outcome", variant)
+    saved = case.directory / _name("RESULT", variant)
     if not (out.exists() and saved.exists()):
         return None
     row = json.loads(out.read_text())
     if row.get("status") != "ok":
         return row
-    truth = json.loads((case.directory / "truth.json").read_text())
+    truth, moving = _variant_inputs(
+        case, json.loads((case.directory / "truth.json").read_text()), variant)
     row.update(describe(case, truth))
-    row.update(evaluate(case, truth, json.loads(saved.read_text()),
-                        np.load(case.directory / "moving.npy")))
+    row.update(evaluate(case, truth, json.loads(saved.read_text()), moving))
     return row
 
 
-def run_case(case: Case, logs: Path) -> dict:
+def run_case(case: Case, logs: Path, variant: str = "") -> dict:
     log = logs / f"{case.case_id}.log"
     if not scene_ready(case):
         status, secs = run_child(["--generate-one", case.case_id], TIMEOUT_GENERATE_S, log)
@@ -229,10 +259,11 @@ def run_case(case: Case, logs: Path) -> dict:
             return {"case": case.case_id, "half": case.half, "family": case.family,
                     "generator": case.generator, "negative": case.negative,
                     "status": "failed", "error": f"scene generation: {status}"}
-    out = case.directory / "outcome.json"
+    out = case.directory / _name("outcome", variant)
     out.unlink(missing_ok=True)
-    (case.directory / "RESULT.json").unlink(missing_ok=True)
-    status, secs = run_child(["--register-one", case.case_id, str(out)], TIMEOUT_REGISTER_S, log)
+    (case.directory / _name("RESULT", variant)).unlink(missing_ok=True)
+    args = ["--register-one", case.case_id, str(out)] + ([variant] if variant else [])
+    status, secs = run_child(args, TIMEOUT_REGISTER_S, log)
     if status == "ok" and out.exists():
         return json.loads(out.read_text())
     truth = json.loads((case.directory / "truth.json").read_text())
@@ -244,14 +275,14 @@ def run_case(case: Case, logs: Path) -> dict:
     return row
 
 
-def run(cases: list[Case], jobs: int) -> list[dict]:
+def run(cases: list[Case], jobs: int, variant: str = "") -> list[dict]:
     logs = WORK / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
 
     def one(case: Case) -> dict:
         t0 = time.perf_counter()
-        row = run_case(case, logs)
+        row = run_case(case, logs, variant)
         verdict = ("FAILED " + row.get("error", "")) if row.get("status") != "ok" else \
             f"confident={row['confident']} correct={row['correct']}"
         print(f"[{len(rows) + 1}/{len(cases)}] {case.case_id}: {verdict} "
@@ -299,13 +330,15 @@ def main() -> None:
     parser.add_argument("--rescore", action="store_true",
                         help="score the saved RESULT.json files again (no registration)")
     parser.add_argument("--generate-one", help=argparse.SUPPRESS)
-    parser.add_argument("--register-one", nargs=2, help=argparse.SUPPRESS)
+    parser.add_argument("--upside-down", action="store_true",
+                        help="turn each case's tie points over first (results verdict-upside-down)")
+    parser.add_argument("--register-one", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.generate_one:
         make_case_scene(case_by_id(args.generate_one))
         return
     if args.register_one:
-        register_one(args.register_one[0], Path(args.register_one[1]))
+        register_one(args.register_one[0], Path(args.register_one[1]), *args.register_one[2:])
         return
     cases = quick_cases() if args.quick else all_cases()
     if args.half != "both":
@@ -329,14 +362,21 @@ def main() -> None:
         return
     t0 = time.perf_counter()
     saved_meta: dict = {}
+    variant = "upside-down" if args.upside_down else ""
+    name = "verdict-quick" if args.quick else "verdict" + (f"-{variant}" if variant else "")
     if args.rescore:
-        rows = [r for r in map(rescore, cases) if r is not None]
-        if (RESULTS / "verdict.json").exists():  # the run's own date, jobs and wall time
-            saved_meta = json.loads((RESULTS / "verdict.json").read_text())["meta"]
+        rows = [r for r in (rescore(c, variant) for c in cases) if r is not None]
+        if (RESULTS / f"{name}.json").exists():  # the run's own date, jobs and wall time
+            saved_meta = json.loads((RESULTS / f"{name}.json").read_text())["meta"]
         seconds = float(saved_meta.get("wall_seconds", 0.0))
     else:
-        rows = run(_interleaved(cases), args.jobs)
+        from coarse import machine_speed
+
+        speed_before = machine_speed().removeprefix("machine speed: ")
+        rows = run(_interleaved(cases), args.jobs, variant)
         seconds = time.perf_counter() - t0
+        saved_meta["machine_speed"] = [speed_before,
+                                       machine_speed().removeprefix("machine speed: ")]
     from verdict_report import write_report
 
     partial = (args.quick or args.only or args.every > 1 or args.half != "both"
@@ -347,9 +387,11 @@ def main() -> None:
                        f"{platform.python_version()}",
             "tiereg": _tiereg_commit(), "jobs": args.jobs, "wall_seconds": seconds,
             "cases": len(rows), "selection": "quick" if args.quick else args.half
-            + (f", every {args.every}th case" if args.every > 1 else "")}
-    meta.update({k: saved_meta[k] for k in ("date", "jobs") if k in saved_meta})
-    path = write_report(rows, meta, out_dir, name="verdict-quick" if args.quick else "verdict")
+            + (f", every {args.every}th case" if args.every > 1 else "")
+            + (", tie points upside down" if variant else "")}
+    meta.update({k: saved_meta[k] for k in ("date", "jobs", "machine_speed")
+                 if k in saved_meta})
+    path = write_report(rows, meta, out_dir, name=name)
     print(path)
 
 

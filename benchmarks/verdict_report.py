@@ -106,6 +106,8 @@ def write_report(rows: list[dict], meta: dict, out_dir: Path, *, name: str = "ve
              f"{meta['cases']} cases ({meta['selection']}), {meta['jobs']} at a time; wall time "
              f"{meta['wall_seconds'] / 60:.0f} min (scene generation of uncached scenes "
              "included)",
+             *([f"- before the run: {meta['machine_speed'][0]}; after: "
+                f"{meta['machine_speed'][1]}"] if meta.get("machine_speed") else []),
              "- `python benchmarks/verdict.py` (definitions and scene ranges in its docstring); "
              "correct: heading within 2 deg, scale within 2 %, block centre within one coarse "
              "cell, and with an accepted fine answer the RMS transform error at the tie points "

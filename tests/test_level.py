@@ -118,7 +118,10 @@ def test_a_model_upside_down_and_level_is_turned_over(suburb, tmp_path, cameras)
 def test_level_mountain_blocks_stay_level():
     # a small block on steep ground: its dominant plane leans by 61 degrees though the tie points
     # are level; the model as it is must still be tried, and win (levelled by that plane, the
-    # model is 61 degrees off: 594 m off, not confident, when only the two senses were tried)
+    # model is 61 degrees off: 594 m off, not confident, when only the two senses were tried).
+    # Nor is that plane dominant (the block is about as thick as it is wide), so the points as
+    # they are come first and, registered confidently, are the only orientation tried (up,
+    # down, then as they are before)
     from tiereg.level import vertical_from_points
 
     spec = SceneSpec(kind="mountains", seed=61, world_size_m=3000.0, lidar_size_m=2000.0,
@@ -126,9 +129,10 @@ def test_level_mountain_blocks_stay_level():
                      survey=LidarSurvey(density_per_m2=0.5),
                      hidden=HiddenTransform(heading_deg=75.0, scale=1.5), block_heading_deg=0.0)
     scene = make_scene(spec)
-    assert vertical_from_points(scene.tie_points.xyz).tilt_deg > 45  # the premise
+    vertical = vertical_from_points(scene.tie_points.xyz)
+    assert vertical.tilt_deg > 45 and vertical.ambiguous  # the premises
     result = register(scene.moving, scene.lidar.xyz, fine="none")
-    assert result.confident and result.levelling.tried == 3  # up, down, then as it is
+    assert result.confident and result.levelling.tried == 1
     assert result.levelling.chosen == "as is"
     assert _rms(result.T_ref_mov, scene.T_ref_mov, scene.moving) < 5.0  # metres, coarse only
 
@@ -155,3 +159,37 @@ def test_points_are_tried_as_they_are_whatever_their_plane_leans():
             assert not poses[name].last_resort
     cams = Vertical((0.6, 0.0, 0.8), "cameras", True, 0.05)
     assert [p.name for p in starting_poses(cams, centre)] == ["up"]
+    assert [p.name for p in starting_poses(cams, centre, as_is_first=True)] == ["up"]
+
+
+def test_where_the_plane_says_nothing_the_points_as_they_are_come_first():
+    from tiereg.level import Vertical, starting_poses
+
+    centre = np.array([500.0, -20.0, 80.0])
+    for tilt_deg in (2.0, 30.0, 70.0):
+        t = np.radians(tilt_deg)
+        v = Vertical((float(np.sin(t)), 0.0, float(np.cos(t))), "points", False, 0.05)
+        poses = starting_poses(v, centre, as_is_first=True)
+        assert poses[0].name == "as is" and not poses[0].last_resort
+        assert [p.name for p in poses[1:]] == ["as is, turned over"] + (
+            ["down"] if tilt_deg < 15 else ["up", "down"])
+        assert all(p.last_resort for p in poses[1:])
+        over = poses[1].T  # half a turn about x through the centre: z and y change sense
+        np.testing.assert_allclose(over.matrix[:3, :3], np.diag([1.0, -1.0, -1.0]))
+        np.testing.assert_allclose(over.apply(centre[None])[0], centre)
+        assert not poses[1].free_tilt
+
+
+def test_steep_ground_is_told_by_its_dominant_plane():
+    from tiereg.level import is_steep_ground
+
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 1000, (20000, 2))
+    bumps = 5.0 * np.sin(xy[:, 0] / 50.0) * np.cos(xy[:, 1] / 70.0)  # metres of relief
+    for slope_deg, steep in ((0.0, False), (10.0, False), (20.0, True), (50.0, True)):
+        z = np.tan(np.radians(slope_deg)) * xy[:, 0] + bumps
+        assert is_steep_ground(np.column_stack([xy, z])) == steep, slope_deg
+    # a massif as high as it is wide has no dominant plane: steep
+    r = np.hypot(xy[:, 0] - 500, xy[:, 1] - 500)
+    assert is_steep_ground(np.column_stack([xy, 900.0 * np.exp(-(r / 300.0) ** 2)]))
+    assert not is_steep_ground(np.zeros((2, 3)))

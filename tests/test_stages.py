@@ -40,7 +40,7 @@ def _vouched(noise_m: float, scale: float) -> CoarseStage:
 def fine_result(monkeypatch):
     def use(**fields):
         fields = {"refused": "", "contradicts_coarse": False,
-                  "fit": SimpleNamespace(sigma=np.full(7, 0.01)), **fields}
+                  "fit": SimpleNamespace(sigma=np.full(7, 0.01), converged=True), **fields}
         result = SimpleNamespace(T_increment=MOVE, method="lsm", seconds=0.0, held=(), **fields)
         monkeypatch.setattr(stages, "register_fine", lambda *a, **k: result)
         return result
@@ -66,6 +66,23 @@ def test_a_fine_answer_that_contradicts_the_coarse_one_withdraws_the_confidence(
     assert "contradicts the coarse answer" in out.reasons[0]
 
 
+@pytest.mark.parametrize("converged", [True, False])
+def test_the_verdict_vouches_for_a_refused_fine_stage_only_when_it_converged(fine_result,
+                                                                              converged):
+    refusal = ("it leaves the tie points farther from the lidar surface" if converged
+               else "it did not converge in 40 iterations")
+    fine_result(refused=refusal, fit=SimpleNamespace(sigma=np.full(7, 0.01),
+                                                     converged=converged))
+    out = fine_stage(np.zeros((50, 3)), np.ones(50, bool), None, _vouched(0.2, scale=1.0),
+                     method="auto", coarse_method="auto")
+    assert out.T_local.isclose(Transform.identity())  # the coarse pose stands either way
+    assert out.confident == converged
+    if converged:
+        assert "kept the coarse answer" in out.warnings[0]
+    else:
+        assert out.confidence <= 0.49 and "could not confirm" in out.reasons[0]
+
+
 @pytest.mark.parametrize("sigma_xy_m, confident", [(0.25, True), (0.4, False)])
 def test_a_fine_answer_less_precise_than_the_noise_allows_is_not_confident(fine_result,
                                                                           sigma_xy_m, confident):
@@ -75,7 +92,7 @@ def test_a_fine_answer_less_precise_than_the_noise_allows_is_not_confident(fine_
     noise_m = start.verdict.noise * 2.0
     assert noise_m == pytest.approx(0.2, rel=0.1)
     sigma = np.array([1e-4, 1e-4, 1e-4, 1e-4, sigma_xy_m, sigma_xy_m, 0.1])
-    fine_result(fit=SimpleNamespace(sigma=sigma))
+    fine_result(fit=SimpleNamespace(sigma=sigma, converged=True))
     out = fine_stage(np.zeros((50, 3)), np.ones(50, bool), None, start, method="auto",
                      coarse_method="auto")
     assert out.T_local.isclose(MOVE)  # the answer is kept either way
@@ -88,7 +105,7 @@ def test_a_fine_answer_less_precise_than_the_noise_allows_is_not_confident(fine_
 
 def test_held_parameters_do_not_count_as_uncertainty(fine_result):
     sigma = np.array([1e-4, 1e-4, 1e-4, 1e-4, np.nan, np.nan, 0.1])  # x and y held
-    fine_result(fit=SimpleNamespace(sigma=sigma))
+    fine_result(fit=SimpleNamespace(sigma=sigma, converged=True))
     out = fine_stage(np.zeros((50, 3)), np.ones(50, bool), None, _vouched(0.2, scale=2.0),
                      method="auto", coarse_method="auto")
     assert out.confident

@@ -18,7 +18,11 @@ normal are tried whatever its tilt (a model may be upside down and still level t
 degrees), and the points as they are too, whatever the tilt (level data, tie points of an
 aerial triangulation: a mountain block's dominant plane leans by 16-78 degrees on the verdict
 benchmark's scenes), last where it leans more than :data:`MAX_GROUND_TILT_DEG` and only
-when neither sense registers confidently; the reference decides.
+when neither sense registers confidently; the reference decides. Where the points' plane says
+nothing of their vertical (they have no dominant plane, or the reference's ground is steep:
+its own dominant plane leans more than :data:`MIN_TILT_DEG`, or it has none, and level data
+of it lean as much) the points as they are come first, and the levelled orientations only
+when they do not register confidently.
 """
 
 from __future__ import annotations
@@ -121,11 +125,12 @@ class StartingPose:
 
     T: Transform
     free_tilt: bool
-    name: str  # "as is", "up" (levelled by the vertical found), "down" (by its opposite)
+    name: str  # "as is", "as is, turned over", "up" (levelled by the vertical found), "down"
     last_resort: bool = False
 
 
-def starting_poses(vertical: Vertical, centre: np.ndarray) -> list[StartingPose]:
+def starting_poses(vertical: Vertical, centre: np.ndarray, *,
+                   as_is_first: bool = False) -> list[StartingPose]:
     """The orientations to try for a model whose vertical is ``vertical`` (turned about
     ``centre``), most likely first.
 
@@ -135,19 +140,44 @@ def starting_poses(vertical: Vertical, centre: np.ndarray) -> list[StartingPose]
     plane fitted to their heights). Where the plane leans more than
     :data:`MAX_GROUND_TILT_DEG`, the points as they are come last, as a last resort. Nearly
     level points (:data:`MIN_TILT_DEG`) are not levelled by their plane in the same sense
-    (terrain slopes would tilt them), only turned over.
+    (terrain slopes would tilt them), only turned over. With ``as_is_first`` (the plane says
+    nothing of the vertical: :attr:`Vertical.ambiguous`, or :func:`is_steep_ground` of the
+    reference) the points as they are come first; the same turned over (level data upside
+    down, as a model whose first camera looked down gives them) and the levelled orientations
+    are last resorts.
     """
     up = np.asarray(vertical.up, dtype=np.float64)
     if vertical.source == "cameras":
         return [StartingPose(levelling(up, centre), False, "up")]
     tilt = vertical.tilt_deg
-    poses = [StartingPose(levelling(up, centre), True, "up")] if tilt > MIN_TILT_DEG else []
-    poses.append(StartingPose(levelling(-up, centre), True, "down"))
+    poses = [StartingPose(levelling(up, centre), True, "up", last_resort=as_is_first)
+             ] if tilt > MIN_TILT_DEG else []
+    poses.append(StartingPose(levelling(-up, centre), True, "down", last_resort=as_is_first))
     # as they are, the points are taken for level data: no plane is fitted to their heights,
     # which on steep ground would take away the slope that places them
     as_is = StartingPose(Transform.identity(), False, "as is",
-                         last_resort=tilt > MAX_GROUND_TILT_DEG)
+                         last_resort=tilt > MAX_GROUND_TILT_DEG and not as_is_first)
+    if as_is_first:
+        over = StartingPose(turned_over(centre), False, "as is, turned over", last_resort=True)
+        return [as_is, over, *poses]
     return poses + [as_is] if as_is.last_resort else [as_is, *poses]
+
+
+def turned_over(centre: np.ndarray) -> Transform:
+    """Half a turn about the x axis through ``centre``: level data upside down, right way up."""
+    M = np.diag([1.0, -1.0, -1.0, 1.0])
+    M[:3, 3] = np.asarray(centre, dtype=np.float64) - M[:3, :3] @ centre
+    return Transform(M)
+
+
+def is_steep_ground(xyz: np.ndarray) -> bool:
+    """Whether the ground sampled by ``xyz`` (the reference) is steep: its dominant plane leans
+    more than :data:`MIN_TILT_DEG`, or it has none (:data:`MAX_FLATNESS`). Level data of such
+    ground lean their own plane as much, so the plane does not give their vertical."""
+    if len(xyz) < 3:
+        return False
+    ground = vertical_from_points(xyz)
+    return ground.tilt_deg > MIN_TILT_DEG or ground.ambiguous
 
 
 def levelling(up: tuple[float, float, float] | np.ndarray, centre: np.ndarray) -> Transform:

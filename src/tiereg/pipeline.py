@@ -24,11 +24,13 @@ from .crs import crs_label, crs_units
 from .errors import InputError
 from .fine import METHODS as FINE_METHODS
 from .fine import FineResult
+from .grid import Grid
 from .io import PointSource, as_point_source
 from .level import (
     MIN_CAMERA_TILT_DEG,
     StartingPose,
     Vertical,
+    is_steep_ground,
     starting_poses,
     vertical_from_cameras,
     vertical_from_points,
@@ -209,17 +211,23 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
 def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
                        **options: Any) -> RegistrationResult:
     """Register the model from each of the orientations ``vertical`` proposes
-    (:func:`~tiereg.level.starting_poses`; a last resort only where none before it is
-    confident); the answer whose registration is confident (then the more confident) wins, and
-    two confident answers that disagree are no answer."""
+    (:func:`~tiereg.level.starting_poses`, the points as they are first where their plane says
+    nothing of their vertical; the last resorts only where no other orientation registers
+    confidently); the answer whose registration is confident (then the more confident) wins,
+    and two confident answers that disagree are no answer."""
     centre = moving.xyz[moving.keep].mean(axis=0)  # the levelling turns about it
+    ref, reference_seconds = _open_reference(reference, options["reference_format"],
+                                             options["progress"])
+    # the points' plane says nothing of their vertical: none, or steep ground leans it
+    as_is_first = vertical.source == "points" and (
+        vertical.ambiguous or is_steep_ground(_grid_points(ref.base)))
     poses: list[StartingPose] = []
     results: list[RegistrationResult] = []
-    for pose in starting_poses(vertical, centre):
-        if pose.last_resort and any(r.confident for r in results):
+    for pose in starting_poses(vertical, centre, as_is_first=as_is_first):
+        if pose.last_resort and any(r.confident for r, p in zip(results, poses)
+                                    if not p.last_resort):
             continue
-        r = _register_from(moving, results[0].reference if results else reference,
-                           initial=pose.T, free_tilt=pose.free_tilt, **options)
+        r = _register_from(moving, ref, initial=pose.T, free_tilt=pose.free_tilt, **options)
         poses.append(pose)
         results.append(replace(r, T_initial=None))
     best = max(results, key=lambda r: (r.confident, r.confidence))
@@ -242,7 +250,17 @@ def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
     return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
                    confidence=best.confidence if confident else min(best.confidence, 0.49),
                    levelling=info, seconds=time.perf_counter() - moving.t0,
-                   reference_seconds=results[0].reference_seconds)
+                   reference_seconds=reference_seconds)
+
+
+def _grid_points(grid: Grid, max_cells: int = 100_000) -> np.ndarray:
+    """The filled cells of ``grid`` as points (centre, mean height), at most about
+    ``max_cells`` of them, evenly strided."""
+    rows, cols = np.nonzero(np.isfinite(grid["mean"]))
+    step = max(1, len(rows) // max_cells)
+    rows, cols = rows[::step], cols[::step]
+    x, y = grid.spec.xy(rows, cols)
+    return np.column_stack([x, y, grid["mean"][rows, cols]])
 
 
 def _better_orientation(results: list[RegistrationResult], xyz: np.ndarray,

@@ -218,8 +218,9 @@ def fine_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start: C
                method: str, coarse_method: str) -> FineStage:
     """The fine registration from ``start``'s pose (:func:`~tiereg.fine.register_fine`), unless
     ``method`` is ``"none"`` or no pose explains the heights; a refusal costs the confidence
-    unless the verdict's refined fit vouches for the coarse pose, and so does an answer less
-    precise than the verdict's noise allows (:func:`~tiereg.verdict.imprecision`)."""
+    unless the verdict's refined fit vouches for the coarse pose (never when the fine stage
+    did not converge), and so does an answer less precise than the verdict's noise allows
+    (:func:`~tiereg.verdict.imprecision`)."""
     if method == "none":
         return FineStage(start.T_local, None, start.confident, start.confidence,
                          note="not asked for (`fine` none)")
@@ -233,7 +234,11 @@ def fine_stage(mov_local: np.ndarray, keep: np.ndarray, ref: Reference, start: C
     T_local, confident = start.T_local, start.confident
     reasons: list[str] = []
     warnings: list[str] = []
-    vouched = start.verdict is not None and not result.contradicts_coarse
+    # a fine stage that does not settle near the coarse pose says the tie points' heights do
+    # not pin it there: the verdict's cheaper fit cannot vouch for it then (upside-down mountain
+    # blocks matched at a tenth of their scale were confident so)
+    vouched = (start.verdict is not None and not result.contradicts_coarse
+               and result.fit.converged)
     if result.refused and vouched:
         # the verdict's refined fit already placed the tie points on the surface; a fine
         # stage that finds nothing better leaves that pose as the answer
