@@ -21,8 +21,8 @@ benchmark's scenes), last where it leans more than :data:`MAX_GROUND_TILT_DEG` a
 when neither sense registers confidently; the reference decides. Where the points' plane says
 nothing of their vertical (they have no dominant plane, or the reference's ground is steep:
 its own dominant plane leans more than :data:`MIN_TILT_DEG`, or it has none, and level data
-of it lean as much) the points as they are come first, and the levelled orientations only
-when they do not register confidently.
+of it lean as much) the points as they are come first, and the same turned over and the
+levelled orientations only when they do not register confidently.
 """
 
 from __future__ import annotations
@@ -165,8 +165,9 @@ def starting_poses(vertical: Vertical, centre: np.ndarray, *,
 
 def turned_over(centre: np.ndarray) -> Transform:
     """Half a turn about the x axis through ``centre``: level data upside down, right way up."""
+    c = np.asarray(centre, dtype=np.float64)
     M = np.diag([1.0, -1.0, -1.0, 1.0])
-    M[:3, 3] = np.asarray(centre, dtype=np.float64) - M[:3, :3] @ centre
+    M[:3, 3] = c - M[:3, :3] @ c
     return Transform(M)
 
 
