@@ -108,21 +108,14 @@ def case_by_id(case_id: str) -> Case:
     raise SystemExit(f"no case {case_id!r}")
 
 
-def turned_over(moving: np.ndarray) -> np.ndarray:
-    """The turn of ``--upside-down``: 180 degrees about the x axis through the points' centre
-    (its own inverse)."""
-    c = moving.mean(axis=0)
-    F = np.diag([1.0, -1.0, -1.0, 1.0])
-    F[:3, 3] = c - F[:3, :3] @ c
-    return F
-
-
 def _variant_inputs(case: Case, truth: dict, variant: str) -> tuple[dict, np.ndarray]:
     """The truth and the tie points of the case as ``variant`` gives them."""
     moving = np.load(case.directory / "moving.npy")
     if variant != "upside-down":
         return truth, moving
-    F = turned_over(moving)
+    from tiereg.level import turned_over  # half a turn about x through the centre
+
+    F = turned_over(moving.mean(axis=0)).matrix  # its own inverse
     moving = moving @ F[:3, :3].T + F[:3, 3]
     return {**truth, "T_ref_mov": (np.asarray(truth["T_ref_mov"]) @ F).tolist()}, moving
 

@@ -137,3 +137,20 @@ def test_mask_bounds_are_the_box_of_the_true_cells_ends_exclusive():
     mask[2, 3] = mask[4, 6] = True
     assert mask_bounds(mask) == (2, 5, 3, 7)
     assert mask_bounds(np.zeros((3, 3), bool)) is None
+
+
+def test_cell_points_are_the_filled_cells_centres_and_means():
+    rng = np.random.default_rng(7)
+    xyz = np.column_stack([rng.uniform(0, 50, 400), rng.uniform(0, 30, 400),
+                           rng.normal(10, 2, 400)])
+    spec = GridSpec(x0=0.0, y0=30.0, cell_size=5.0, shape=(6, 10))
+    xyz = xyz[(xyz[:, 0] < 20) | (xyz[:, 1] > 15)]  # leave a quarter of the grid empty
+    grid = rasterize(xyz, spec)
+    expected = {(round(k[1] * 5 + 2.5, 6), round(30 - k[0] * 5 - 2.5, 6)): float(np.mean(v))
+                for k, v in slow_stats(xyz, spec).items()}
+    pts = grid.cell_points()
+    assert len(pts) == len(expected) < spec.shape[0] * spec.shape[1]
+    for x, y, z in pts:
+        assert z == pytest.approx(expected[(round(x, 6), round(y, 6))], abs=1e-9)
+    thinned = grid.cell_points(max_cells=10)  # every k-th of them, k = N // 10
+    np.testing.assert_array_equal(thinned, pts[::len(pts) // 10])

@@ -134,6 +134,15 @@ class Grid:
     def occupancy(self) -> float:
         return float(self.mask.mean())
 
+    def cell_points(self, *, max_cells: int | None = None) -> np.ndarray:
+        """The filled cells as ``(N, 3)`` points: their centres and mean heights, in the grid's
+        frame; at most about ``max_cells`` of them (evenly strided) when given."""
+        rows, cols = np.nonzero(self.mask)
+        step = max(1, len(rows) // max_cells) if max_cells else 1
+        rows, cols = rows[::step], cols[::step]
+        x, y = self.spec.xy(rows, cols)
+        return np.column_stack([x, y, self["mean"][rows, cols]])
+
 
 class GridAccumulator:
     """Accumulate per-cell statistics of point chunks on a fixed grid.

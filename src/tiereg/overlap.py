@@ -119,11 +119,8 @@ def write_overlap(result: OverlapResult, out_dir) -> tuple[str, ...]:
     r = result.registration
     ref_xy = np.empty((0, 2))
     if r.reference is not None:
-        base = r.reference.base
-        rows, cols = np.nonzero(base.mask)
-        step = max(1, len(rows) // 100_000)
-        x, y = base.spec.xy(rows[::step], cols[::step])
-        ref_xy = np.column_stack([x, y]) + r.reference.origin[:2]
+        ref_xy = (r.reference.base.cell_points(max_cells=100_000)[:, :2]
+                  + r.reference.origin[:2])
     assert r.residuals is not None
     png = overlap_picture(ref_xy, r.residuals.xyz[:, :2], np.isfinite(r.residuals.dz_after),
                           result.outline, title=result.verdict, units=r.inputs.units)

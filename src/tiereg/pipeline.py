@@ -24,7 +24,6 @@ from .crs import crs_label, crs_units
 from .errors import InputError
 from .fine import METHODS as FINE_METHODS
 from .fine import FineResult
-from .grid import Grid
 from .io import PointSource, as_point_source
 from .level import (
     MIN_CAMERA_TILT_DEG,
@@ -220,7 +219,7 @@ def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
                                              options["progress"])
     # the points' plane says nothing of their vertical: none, or steep ground leans it
     as_is_first = vertical.source == "points" and (
-        vertical.ambiguous or is_steep_ground(_grid_points(ref.base)))
+        vertical.ambiguous or is_steep_ground(ref.base.cell_points(max_cells=100_000)))
     poses: list[StartingPose] = []
     results: list[RegistrationResult] = []
     for pose in starting_poses(vertical, centre, as_is_first=as_is_first):
@@ -252,15 +251,6 @@ def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
                    levelling=info, seconds=time.perf_counter() - moving.t0,
                    reference_seconds=reference_seconds)
 
-
-def _grid_points(grid: Grid, max_cells: int = 100_000) -> np.ndarray:
-    """The filled cells of ``grid`` as points (centre, mean height), at most about
-    ``max_cells`` of them, evenly strided."""
-    rows, cols = np.nonzero(np.isfinite(grid["mean"]))
-    step = max(1, len(rows) // max_cells)
-    rows, cols = rows[::step], cols[::step]
-    x, y = grid.spec.xy(rows, cols)
-    return np.column_stack([x, y, grid["mean"][rows, cols]])
 
 
 def _better_orientation(results: list[RegistrationResult], xyz: np.ndarray,
