@@ -18,6 +18,7 @@ from tiereg.verdict import (
     NOISE_MULTIPLE,
     SETTLED_CELLS,
     RefinedPose,
+    own_scatter,
     refine,
     verdict_of,
 )
@@ -84,6 +85,62 @@ def test_an_answer_that_leaves_the_smooth_grounds_heights_unexplained_is_not_con
     verdict = verdict_of(poses, 0, (500.0, 100.0), (np.nan, 9.0), _tightest(*poses))
     assert poses[0].smooth_unexplained > MAX_SMOOTH_SPREAD and not verdict.confident
     assert any("disagree with the reference surface" in r for r in verdict.reasons)
+
+
+def test_an_answer_whose_heights_lie_farther_than_the_tie_points_own_scatter_is_not_confident():
+    # every pose may be wrong: the tightest refined fit's spread then says nothing of the tie
+    # points' noise, their own scatter about their neighbours does (a negative in the mountains,
+    # matched elsewhere at 5.6 times that scatter, was confident so)
+    poses = (_pose(1.0), _pose(8.0, seed=1))
+    args = (poses, 0, (700.0, 200.0), (np.nan, 9.0), _tightest(*poses))
+    assert verdict_of(*args, scatter=2.0).confident
+    refused = verdict_of(*args, scatter=0.5)  # roughness 0.1 there: 0.51 allowed, 1.0 left
+    assert not refused.confident and refused.confidence < 0.5
+    assert len(refused.reasons) == 1 and "own scatter" in refused.reasons[0]
+    assert refused.to_dict()["scatter"] == 0.5
+    assert verdict_of(*args).confident and verdict_of(*args).to_dict()["scatter"] is None
+
+
+def test_the_surfaces_roughness_on_smooth_ground_is_allowed_beside_the_tie_points_scatter():
+    # precise tie points (0.5) over a surface 1.5 rough even where it is smoothest (lidar noise,
+    # grass): a spread of 1.0 there is the surface's, not a wrong pose's
+    poses = (_pose(1.0), _pose(8.0, seed=1))
+    rough = replace(poses[0], roughness=np.full(len(poses[0].dz), 1.5))
+    verdict = verdict_of((rough, poses[1]), 0, (700.0, 200.0), (np.nan, 9.0),
+                         _tightest(rough, poses[1]), scatter=0.5)
+    assert verdict.confident, verdict.reasons
+
+
+def _slow_scatter(xyz: np.ndarray, k: int) -> float:
+    """Per point: the plane through its k nearest neighbours by SVD, its distance."""
+    xyz = xyz - xyz.mean(axis=0)
+    r = []
+    for p in xyz:
+        nb = xyz[np.argsort(np.linalg.norm(xyz - p, axis=1), kind="stable")[1:k + 1]]
+        c = nb.mean(axis=0)
+        normal = np.linalg.svd(nb - c)[2][-1]
+        r.append(abs(float((p - c) @ normal)))
+    return 1.4826 * float(np.median(r))
+
+
+def test_own_scatter_is_the_tie_noise_in_any_orientation_and_matches_a_slow_reference():
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(0.0, 1000.0, (600, 2))  # about 40 m apart
+    ground = 0.02 * xy[:, 0] + 5.0 * np.sin(xy[:, 1] / 200.0)  # a few cm of curvature between
+    noise_m = 0.3
+    xyz = np.column_stack([xy, ground + rng.normal(0.0, noise_m, len(xy))])
+    a, b = np.radians(70.0), np.radians(130.0)  # turned over and about: any orientation
+    R = (np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+         @ np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]]))
+    turned = xyz @ R.T + [4e6, 5e5, 300.0]
+    assert own_scatter(turned, k=10) == pytest.approx(_slow_scatter(xyz, 10), rel=1e-6)
+    # the noise, a little more (the planes are fitted to noisy neighbours): 1.0-1.26 times it
+    # over seeds 0-7, the median of 600 distances known to about 5 %
+    assert 0.9 * noise_m <= own_scatter(turned) <= 1.35 * noise_m
+    assert own_scatter(turned, max_points=200) == pytest.approx(own_scatter(turned), rel=0.3)
+    # a point given twice is one point: its copy is no neighbour that pulls the plane onto it
+    assert own_scatter(np.vstack([turned, turned])) == own_scatter(turned)
+    assert np.isnan(own_scatter(turned[:10]))
 
 
 def test_too_few_tie_points_on_the_surface_measure_no_noise():

@@ -9,7 +9,7 @@ so the model is first turned so that its vertical points up:
 - otherwise from the points: the normal of their dominant plane (robust PCA: the smallest
   principal axis after trimming the points farthest from the plane). Its sign is unknown: both
   are tried, and the model as it is (rugged ground tilts its own dominant plane, by any
-  angle), and the one the reference confirms wins. A block about as thick as it is wide has no
+  angle), in turn until the reference confirms one. A block about as thick as it is wide has no
   dominant plane: the vertical is then ambiguous and the result says so.
 
 From the cameras, a model is turned whenever its up is more than :data:`MIN_CAMERA_TILT_DEG`
@@ -22,7 +22,9 @@ when neither sense registers confidently; the reference decides. Where the point
 nothing of their vertical (they have no dominant plane, or the reference's ground is steep:
 its own dominant plane leans more than :data:`MIN_TILT_DEG`, or it has none, and level data
 of it lean as much) the points as they are come first, and the same turned over and the
-levelled orientations only when they do not register confidently.
+levelled orientations only when they do not register confidently. Whatever the order, the
+first orientation registered confidently ends the search: a mirrored ground is rejected by the
+verdict as any wrong pose is (:data:`~tiereg.verdict.MAX_SPREAD_SCATTER`).
 """
 
 from __future__ import annotations
@@ -121,7 +123,8 @@ def vertical_from_cameras(centres: np.ndarray, directions: np.ndarray,
 class StartingPose:
     """A way to turn a model before the level problem: the rotation, whether its points may
     still lean (levelled by a plane of their own, not by cameras), a name for the result, and
-    whether it is a last resort (tried only when no pose before it registers confidently)."""
+    whether it is a last resort (put after the others; as every pose, tried only when none
+    before it registers confidently)."""
 
     T: Transform
     free_tilt: bool

@@ -40,7 +40,7 @@ from .quality import HeightStats, PointResiduals
 from .reference import Reference, prepare_reference
 from .stages import Frames, coarse_stage, fine_stage, heights_after, no_coarse_stage
 from .transform import Transform
-from .verdict import Verdict, decide
+from .verdict import Verdict
 
 MIN_MOVING_POINTS = 30
 
@@ -85,7 +85,7 @@ class Levelling:
     sign_known: bool  # cameras tell up from down; a plane does not
     flatness: float
     tried: int  # orientations registered
-    confident_answers: int  # of them, those registered confidently
+    confident_answers: int  # of them, those registered confidently: 0 or 1 (the first ends it)
     chosen: str  # the orientation whose answer is the registration's
 
     def to_dict(self) -> dict[str, Any]:
@@ -209,11 +209,11 @@ def find_vertical(source: PointSource, xyz: np.ndarray, *, mode: str) -> Vertica
 
 def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
                        **options: Any) -> RegistrationResult:
-    """Register the model from each of the orientations ``vertical`` proposes
+    """Register the model from the orientations ``vertical`` proposes
     (:func:`~tiereg.level.starting_poses`, the points as they are first where their plane says
-    nothing of their vertical; the last resorts only where no other orientation registers
-    confidently); the answer whose registration is confident (then the more confident) wins,
-    and two confident answers that disagree are no answer."""
+    nothing of their vertical), in their order until one registers confidently: that answer,
+    else the most confident of them. A wrong orientation (the ground mirrored) is rejected by
+    the verdict as any wrong pose is (the tie points' own scatter bounds what it may leave)."""
     centre = moving.xyz[moving.keep].mean(axis=0)  # the levelling turns about it
     ref, reference_seconds = _open_reference(reference, options["reference_format"],
                                              options["progress"])
@@ -223,9 +223,8 @@ def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
     poses: list[StartingPose] = []
     results: list[RegistrationResult] = []
     for pose in starting_poses(vertical, centre, as_is_first=as_is_first):
-        if pose.last_resort and any(r.confident for r, p in zip(results, poses)
-                                    if not p.last_resort):
-            continue
+        if any(r.confident for r in results):
+            break
         r = _register_from(moving, ref, initial=pose.T, free_tilt=pose.free_tilt, **options)
         poses.append(pose)
         results.append(replace(r, T_initial=None))
@@ -234,48 +233,11 @@ def _register_levelled(vertical: Vertical, moving: Moving, reference: object,
     if vertical.ambiguous and not best.confident:  # else the reference decided the vertical
         reasons.append("the vertical of the moving model is ambiguous (no dominant plane); give "
                        "a model with its cameras, or a starting pose (`initial`)")
-    rivals = [r for r in results if r.confident and r is not best
-              and not _same_answer(r, best, centre[None])]
-    if rivals:  # the lidar decides between them, as between the coarse stage's rivals
-        decided = _better_orientation([best, *rivals], moving.xyz, centre)
-        best, rivals = (decided, []) if decided is not None else (best, rivals)
-    if rivals:
-        reasons.append("two orientations of the vertical register confidently: the answer is "
-                       "ambiguous")
     info = Levelling(vertical.source, tuple(vertical.up), vertical.tilt_deg, vertical.sign_known,
                      vertical.flatness, len(results), sum(r.confident for r in results),
                      poses[results.index(best)].name)
-    confident = best.confident and not rivals
-    return replace(best, confident=confident, reasons=tuple(dict.fromkeys(reasons)),
-                   confidence=best.confidence if confident else min(best.confidence, 0.49),
-                   levelling=info, seconds=time.perf_counter() - moving.t0,
-                   reference_seconds=reference_seconds)
-
-
-
-def _better_orientation(results: list[RegistrationResult], xyz: np.ndarray,
-                        centre: np.ndarray) -> RegistrationResult | None:
-    """Of confident registrations from different orientations that disagree, the one whose
-    refined fit explains the tie points' heights beyond doubt (:func:`~tiereg.verdict.decide`),
-    or ``None``."""
-    ref = results[0].reference
-    moving = xyz - centre
-    to_local = Transform.from_translation(-ref.origin)
-    starts = [to_local @ r.T_ref_mov @ Transform.from_translation(centre) for r in results]
-    verdict = decide(moving, ref, starts, cell=max(r.cell_size for r in results))
-    return results[verdict.chosen] if verdict.confident else None
-
-
-def _same_answer(a: RegistrationResult, b: RegistrationResult, centre: np.ndarray) -> bool:
-    """Two registrations agree: rotation within 2 degrees, scale within 2 %, the block centre
-    within a cell."""
-    Ta, Tb = a.T_ref_mov, b.T_ref_mov
-    Ra = Ta.matrix[:3, :3] / Ta.parameters().scale
-    Rb = Tb.matrix[:3, :3] / Tb.parameters().scale
-    angle = math.degrees(math.acos(float(np.clip((np.trace(Ra @ Rb.T) - 1) / 2, -1, 1))))
-    ratio = Ta.parameters().scale / Tb.parameters().scale
-    moved = float(np.linalg.norm(Ta.apply(centre) - Tb.apply(centre)))
-    return angle <= 2.0 and abs(ratio - 1) <= 0.02 and moved <= max(a.cell_size, b.cell_size)
+    return replace(best, reasons=tuple(dict.fromkeys(reasons)), levelling=info,
+                   seconds=time.perf_counter() - moving.t0, reference_seconds=reference_seconds)
 
 
 def register(

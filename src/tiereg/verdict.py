@@ -31,7 +31,13 @@ robust 7-parameter fit of the tie points' heights to the reference surface
    (:data:`MAX_SMOOTH_SPREAD`): a pose that explains tie points only as well as any height would
    is no answer, however it compares with its rivals. Nor is one whose smooth-ground spread is
    more than ``NOISE_MULTIPLE`` times the tightest refined fit's: another pose then fits part of
-   the tie points far more tightly, and the evidence is divided.
+   the tie points far more tightly, and the evidence is divided. Nor, last, is one whose
+   smooth-ground spread is more than the tie points' own scatter about the planes through their
+   nearest neighbours (:func:`own_scatter`) and the surface's roughness there together allow
+   (added in quadrature, :data:`MAX_SPREAD_SCATTER`): that scatter is their noise plus the
+   ground's curvature between them, an upper bound on their noise that needs no reference, so
+   heights left farther from the surface are not the tie points' noise, whatever the poses'
+   spreads say of each other (all of them can be wrong).
 
 6. **Precise.** Once the fine stage has polished the answer, its own uncertainty at the block
    centre (one standard deviation, 3-D) must be at most :data:`MAX_UNCERTAINTY_NOISE` times the
@@ -50,16 +56,18 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .coarse.refine import height_offset
 from .coarse.result import CoarseResult
 from .coarse.scoring import MIN_OVERLAP, Hypothesis
 from .coarse.search import RIVAL_KAPPA_DEG, RIVAL_SCALE, RIVAL_SHIFT_TIE_CELLS
+from .errors import InputError
 from .fine.lsm import MAX_MOVE_CELLS, vertical_observer
 from .fine.solver import solve_helmert
 from .reference import Reference
-from .robust import nmad
-from .surface import SurfaceSampler
+from .robust import NMAD_FACTOR, nmad
+from .surface import SurfaceSampler, fit_planes
 from .transform import Transform
 
 RIVALS = 3  # genuinely different poses refined beside the answer
@@ -78,6 +86,13 @@ SETTLED_CELLS = 0.25
 # beyond it the pose is not known to the tie points' precision (a suburban block of 887 tie
 # points: 0.48 m against 0.20 m of noise, the answer 0.34 m off with 0.17 m of tie noise)
 MAX_UNCERTAINTY_NOISE = 2.0
+# the answer's smooth-ground spread over what the tie points' own scatter about their
+# neighbours' planes (which bounds their noise from above) and the surface's roughness there
+# allow, in quadrature: a pose that leaves more does not explain them (rule 5; the development
+# half: right answers at most 0.62 of the scatter alone, a negative accepted at 5.6)
+MAX_SPREAD_SCATTER = 1.0
+SCATTER_NEIGHBOURS = 10  # the tie points' nearest neighbours whose plane a point is measured from
+SCATTER_POINTS = 20_000  # at most this many tie points (evenly chosen) measure the scatter
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +140,15 @@ class RefinedPose:
         rough = self.roughness[on]
         return nmad(self.dz[on][rough <= np.quantile(rough, SMOOTH_SHARE)])
 
+    @cached_property
+    def smooth_roughness(self) -> float:
+        """The largest roughness among the tie points :attr:`smooth_spread` is measured on
+        (reference units; inf where that spread cannot be measured)."""
+        on = np.isfinite(self.dz)
+        if on.sum() < 10 / SMOOTH_SHARE:
+            return math.inf
+        return float(np.quantile(self.roughness[on], SMOOTH_SHARE))
+
     @property
     def noise(self) -> float:
         """:attr:`smooth_spread` in the model's units (over the pose's scale)."""
@@ -154,6 +178,7 @@ class Verdict:
     noise: float  # the tightest smooth-ground spread, model units: the noise the data allow
     explained: tuple[float, ...]  # independent observations (cells) each pose explains
     z: tuple[float, ...]  # the answer against each pose (nan for itself)
+    scatter: float = math.nan  # the tie points' own scatter, model units (:func:`own_scatter`)
 
     @property
     def best(self) -> RefinedPose:
@@ -164,6 +189,7 @@ class Verdict:
             "chosen": "coarse answer" if self.chosen == 0 else f"rival {self.chosen}",
             "confident": self.confident, "confidence": round(self.confidence, 4),
             "reasons": list(self.reasons), "noise": self.noise,
+            "scatter": None if not math.isfinite(self.scatter) else self.scatter,
             "explained_within": NOISE_MULTIPLE * self.noise,  # model units, plus the roughness
             "poses": [{
                 "kappa_deg": math.degrees(p.T.parameters().kappa) % 360.0,
@@ -242,12 +268,13 @@ def decide(moving: np.ndarray, reference: Reference, starts: list[Transform], *,
     ``moving`` centred): module docstring."""
     surface = reference.surface()
     poses = tuple(refine(moving, surface, T, cell=cell) for T in starts)
+    scatter = own_scatter(moving)
     eligible = [i for i, p in enumerate(poses) if p.on_surface >= MIN_OVERLAP
                 and np.isfinite(p.smooth_spread)]
     if not eligible:
         return Verdict(0, poses, False, 0.0, (
             f"no pose puts {MIN_OVERLAP:.0%} of the tie points on the reference surface",),
-            math.nan, (0,) * len(poses), (math.nan,) * len(poses))
+            math.nan, (0,) * len(poses), (math.nan,) * len(poses), scatter)
     # the noise in the model's units, at each pose's scale: a pose that shrinks the block onto
     # a flat patch (its heights scaled down with it) explains no more than it should
     noise = max(min(poses[i].noise for i in eligible), 1e-12)
@@ -259,7 +286,29 @@ def decide(moving: np.ndarray, reference: Reference, starts: list[Transform], *,
     best = max(eligible, key=lambda i: (counts[i], -poses[i].noise))
     z = tuple(math.nan if j == best else
               _mcnemar(hits[best], hits[j], weights[best], weights[j]) for j in range(len(poses)))
-    return verdict_of(poses, best, counts, z, noise)
+    return verdict_of(poses, best, counts, z, noise, scatter=scatter)
+
+
+def own_scatter(xyz: np.ndarray, *, k: int = SCATTER_NEIGHBOURS,
+                max_points: int = SCATTER_POINTS) -> float:
+    """The tie points' scatter about their own surface: the median absolute distance (times
+    :data:`~tiereg.robust.NMAD_FACTOR`, a standard deviation for normal noise) of each point
+    from the plane (principal axes, any orientation) through its ``k`` nearest neighbours, at
+    ``max_points`` evenly chosen points at most (repeated points counted once); NaN with fewer
+    than ``k + 1`` distinct points. It is
+    their noise (a little more: the plane is fitted to noisy neighbours) plus the ground's
+    curvature between neighbours, in the points' own units."""
+    if k < 3 or max_points < 1:
+        raise InputError(f"own_scatter needs k of at least 3 (a plane) and max_points of at least "
+                         f"1, got k={k}, max_points={max_points}")
+    xyz = np.unique(np.asarray(xyz, dtype=np.float64), axis=0)  # a copy is no neighbour
+    if len(xyz) < k + 1:
+        return math.nan
+    xyz = xyz - xyz.mean(axis=0)
+    at = xyz[::max(1, -(-len(xyz) // max_points))]
+    _, idx = cKDTree(xyz).query(at, k=k + 1)
+    c, normal, _ = fit_planes(xyz[idx[:, 1:]])  # the point itself (nearest, at 0) left out
+    return NMAD_FACTOR * float(np.median(np.abs(np.einsum("ij,ij->i", at - c, normal))))
 
 
 def _independence(xyz: np.ndarray, cell: float) -> np.ndarray:
@@ -288,10 +337,11 @@ def _mcnemar(a: np.ndarray, b: np.ndarray, w_a: np.ndarray, w_b: np.ndarray) -> 
 
 
 def verdict_of(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, ...],
-               z: tuple[float, ...], noise: float) -> Verdict:
+               z: tuple[float, ...], noise: float, *, scatter: float = math.nan) -> Verdict:
     """The verdict on refined ``poses`` with ``best`` the answer: ``counts`` the tie points
     each explains (weighted), ``z`` the answer's McNemar z against each (NaN for itself),
-    ``noise`` the tightest smooth-ground spread, model units (the module docstring's rules)."""
+    ``noise`` the tightest smooth-ground spread and ``scatter`` the tie points' own
+    (:func:`own_scatter`; NaN: not known), model units (the module docstring's rules)."""
     chosen = poses[best]
     rivals = [v for v in z if not math.isnan(v)]
     z_min = min(rivals) if rivals else math.nan
@@ -314,12 +364,20 @@ def verdict_of(poses: tuple[RefinedPose, ...], best: int, counts: tuple[float, .
         reasons.append(f"another pose fits part of the tie points far more tightly (residual "
                        f"spread on smooth ground {chosen.noise / noise:.1f} times the tightest "
                        f"refined fit's, more than {NOISE_MULTIPLE:g}): the evidence is divided")
+    allowed = MAX_SPREAD_SCATTER * math.hypot(scatter, chosen.smooth_roughness / chosen.T.scale)
+    if chosen.explains_heights and chosen.noise > allowed:  # False where scatter is NaN
+        reasons.append(f"the tie points' heights lie farther from the reference surface at the "
+                       f"found pose, even on smooth ground (spread {chosen.noise:.3g}, model "
+                       f"units), than their own scatter about their neighbours ({scatter:.3g}) "
+                       "and the surface's roughness there allow: that is not their noise, the "
+                       "pose does not explain them")
     distinct = min(z_min / (2 * MIN_Z), 1.0) if rivals else 0.0
     fit = 1.0 - chosen.smooth_unexplained / (2 * MAX_SMOOTH_SPREAD)
     confidence = float(np.clip(min(distinct, fit), 0.0, 1.0))
     if reasons:
         confidence = min(confidence, 0.49)
-    return Verdict(best, poses, not reasons, confidence, tuple(reasons), noise, counts, z)
+    return Verdict(best, poses, not reasons, confidence, tuple(reasons), noise, counts, z,
+                   scatter)
 
 
 def imprecision(verdict: Verdict, sigma_xyz: np.ndarray) -> str | None:
