@@ -131,23 +131,21 @@ class RefinedPose:
         return self.spread / self.relief if self.relief > 0 else math.inf
 
     @cached_property
-    def smooth_spread(self) -> float:
-        """NMAD of the height residuals of the :data:`SMOOTH_SHARE` of the tie points on the
-        surface where it is least rough (inf with fewer than 10 of them)."""
-        on = np.isfinite(self.dz)
-        if on.sum() < 10 / SMOOTH_SHARE:
-            return math.inf
-        rough = self.roughness[on]
-        return nmad(self.dz[on][rough <= np.quantile(rough, SMOOTH_SHARE)])
-
-    @cached_property
     def smooth_roughness(self) -> float:
-        """The largest roughness among the tie points :attr:`smooth_spread` is measured on
-        (reference units; inf where that spread cannot be measured)."""
+        """The roughness below which lie the :data:`SMOOTH_SHARE` of the tie points on the
+        surface where it is least rough (reference units; inf with fewer than 10 of them)."""
         on = np.isfinite(self.dz)
         if on.sum() < 10 / SMOOTH_SHARE:
             return math.inf
         return float(np.quantile(self.roughness[on], SMOOTH_SHARE))
+
+    @cached_property
+    def smooth_spread(self) -> float:
+        """NMAD of the height residuals of the tie points on the surface where it is smoothest,
+        those within :attr:`smooth_roughness` (inf where that cannot be measured)."""
+        if not math.isfinite(self.smooth_roughness):
+            return math.inf
+        return nmad(self.dz[np.isfinite(self.dz) & (self.roughness <= self.smooth_roughness)])
 
     @property
     def noise(self) -> float:
