@@ -305,6 +305,83 @@ def test_lsm_finds_the_canopy_surface_where_the_grid_mean_is_metres_off():
     assert rms(result.T_ref_mov) < 0.3  # metres (tie noise 0.15 m / 0.3 m, lidar 1 per m^2)
 
 
+def test_tie_points_on_crowns_do_not_pull_the_fine_heights(tmp_path):
+    """A third of a suburb's tie points sit on trees, 0.6 m above the lidar's first returns
+    there (an image sees the crowns' tops). The fine stage takes that lift off them: the block
+    placed 0.5 m high comes down onto the open ground (the lift left in, by 0.2 m too far)."""
+    import laspy
+    from scipy.spatial import cKDTree
+
+    from tiereg import register
+    from tiereg.simulate import HiddenTransform, ImageBlock, LidarSurvey, SceneSpec, make_scene
+
+    scene = make_scene(SceneSpec(
+        kind="suburban", seed=7, world_size_m=1200.0, lidar_size_m=1000.0,
+        block=ImageBlock(side_m=700.0), survey=LidarSurvey(density_per_m2=2.0),
+        hidden=HiddenTransform(heading_deg=0.0, scale=1.0), block_heading_deg=0.0))
+    lidar = scene.lidar
+    truth = scene.T_ref_mov.apply(scene.moving)
+    first = lidar.return_number == 1
+    nearest = cKDTree(lidar.xyz[first]).query(truth)[1]
+    on_crown = lidar.classification[first][nearest] == 5
+    assert 0.25 < on_crown.mean() < 0.45
+    moving = scene.T_ref_mov.inverse.apply(truth + np.outer(np.where(on_crown, 0.6, 0.0),
+                                                            [0.0, 0.0, 1.0]))
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.offsets, header.scales = np.floor(lidar.xyz.min(axis=0)), np.full(3, 0.001)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = lidar.xyz.T
+    las.return_number, las.number_of_returns = lidar.return_number, lidar.number_of_returns
+    las.classification = lidar.classification
+    las.write(str(tmp_path / "lidar.las"))
+    start = Transform.from_translation((0.3, -0.2, 0.5)) @ scene.T_ref_mov
+    result = register(moving, tmp_path / "lidar.las", coarse="none", initial=start,
+                      cell_size=10.0)
+    assert result.fine is not None and not result.fine.refused
+    error = result.T_ref_mov.apply(moving) - truth
+    assert abs(float(np.median(error[~on_crown, 2]))) < 0.1  # metres (tie noise 0.3 m)
+    assert float(np.median(error[on_crown, 2])) == pytest.approx(0.6, abs=0.1)
+
+
+def test_the_observer_takes_the_crowns_lift_against_the_open_ground_off():
+    """Level lidar, its east half on vegetation; tie points 0.5 m above it there and 0.1 m
+    above it in the west: the lift is 0.4 m whatever the block's height, and the tie points on
+    the crowns observe 0.1 m like the others."""
+    from tiereg.fine.icp import NearestPlanes
+
+    x, y = np.meshgrid(np.arange(0.0, 60.0), np.arange(0.0, 60.0))
+    lidar = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    solid = lidar[:, 0] < 30
+    rng = np.random.default_rng(2)
+    x_tie = rng.uniform(2, 28, 200) + np.where(rng.random(200) < 0.5, 0.0, 30.0)
+    q = np.column_stack([x_tie, rng.uniform(2, 58, 200), np.zeros(200)])
+    q[:, 2] = np.where(q[:, 0] < 30, 0.1, 0.5)
+    observe = NearestPlanes(lidar, neighbours=8, reach=2.0, solid=solid)
+    for height in (0.0, 3.0):  # metres: the lift does not follow the block's height
+        assert observe.fix_lift(q + [0.0, 0.0, height]) == pytest.approx(0.4, abs=1e-9)
+    r, _, ok = observe(q)
+    assert ok.all()
+    assert np.allclose(r, 0.1, atol=1e-9)
+    assert np.isnan(NearestPlanes(lidar, neighbours=8, reach=2.0).fix_lift(q))
+
+
+def test_crown_lift_is_the_median_height_over_steady_patches():
+    from tiereg.fine.icp import MIN_CROWNS, crown_lift
+
+    rng = np.random.default_rng(3)
+    m = 40
+    tilt = rng.uniform(0.0, 0.5, m)  # normals within 27 degrees of the vertical
+    n = np.column_stack([np.sin(tilt), np.zeros(m), np.cos(tilt)])
+    height = rng.normal(0.7, 0.1, m)
+    r = height * n[:, 2]  # a point `height` above the patch, along its normal
+    crown = np.arange(m) < 30
+    assert crown_lift(r, n, crown) == pytest.approx(float(np.median(height[:30])))
+    steep = n.copy()
+    steep[:15] = [np.sin(1.3), 0.0, np.cos(1.3)]  # 74 degrees: left out of the estimate
+    assert crown_lift(r, steep, crown) == pytest.approx(float(np.median(height[15:30])))
+    assert np.isnan(crown_lift(r, n, np.arange(m) < MIN_CROWNS - 1))
+
+
 def _jackknife_by_refitting(A, w, r, label):
     """Slow, obvious reference: solve the weighted least squares again without each group, then
     the delete-a-group jackknife for unequal groups (Busing et al. 1999)."""

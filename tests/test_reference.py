@@ -177,15 +177,26 @@ def test_open_ground_leaves_out_vegetation_and_split_pulses(tmp_path):
     assert np.all(solid[:, 0] < 20) and np.all(solid[:, 2] == 100.0)
 
 
+def test_solid_near_flags_the_points_on_open_ground(tmp_path):
+    ref = _forest_edge(tmp_path)
+    xy = np.array([[10.0, 20.0], [30.0, 20.0]]) - ref.origin[:2]
+    points, solid = ref.solid_near(xy, 5.0)
+    assert np.array_equal(points, ref.points_near(xy, 5.0))
+    world = points + ref.origin
+    assert solid.any() and (~solid).any()
+    assert np.array_equal(solid, world[:, 0] < 20)
+
+
 def test_the_fine_answer_on_a_canopy_is_refused(tmp_path):
     from tiereg.fine.lsm import _on_canopy
 
     ref = _forest_edge(tmp_path)
-    lidar = np.vstack(list(ref.local_chunks()))
+    lidar, solid = ref.solid_near(np.array([[0.0, 0.0]]), 40.0)
     rng = np.random.default_rng(0)
     west = np.column_stack([rng.uniform(1, 18, 60), rng.uniform(1, 39, 60), np.full(60, 100.0)])
     east = west + [21.0, 0.0, 15.0]  # on the crowns
-    assert _on_canopy(west - ref.origin, lidar, ref) == ""
-    assert _on_canopy(np.vstack([west, east[:50]]) - ref.origin, lidar, ref) == ""  # 45 %
-    why = _on_canopy(east - ref.origin, lidar, ref)
+    assert _on_canopy(west - ref.origin, lidar, solid, reach=2.5) == ""
+    assert _on_canopy(np.vstack([west, east[:50]]) - ref.origin, lidar, solid, reach=2.5) == ""
+    why = _on_canopy(east - ref.origin, lidar, solid, reach=2.5)
     assert "(100%) sit on vegetation" in why
+    assert _on_canopy(east - ref.origin, lidar, None, reach=2.5) == ""  # no classes: open

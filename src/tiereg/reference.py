@@ -166,6 +166,17 @@ class Reference:
                 kept.append(chunk[sel])
         return np.concatenate(kept) if kept else np.empty((0, 3))
 
+    def solid_near(self, xy: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`points_near` and whether each of them lies on a solid surface
+        (:func:`open_ground_mask`; all do where the points carry no classes or returns). A
+        second pass keeps the solid points, found again among the first pass's by their
+        coordinates (the same points in the same order, some left out)."""
+        points = self.points_near(xy, radius)
+        if not self.knows_open_ground or not len(points):
+            return points, np.ones(len(points), bool)
+        solid = self.points_near(xy, radius, open_ground=True)
+        return points, np.isin(_row_keys(points), _row_keys(solid))
+
     def local_chunks(self, *, box: tuple[float, float, float, float] | None = None,
                      open_ground: bool = False) -> Iterator[np.ndarray]:
         """The reference points again, chunk by chunk, in local coordinates: those the base grid
@@ -193,6 +204,12 @@ def _rebuilt(source, origin, base, first_returns_only, source_args) -> Reference
 def _rebuilt_pending(source, origin, first_returns, source_args, spec) -> Reference:
     return Reference(source, origin, None, first_returns, source_args=source_args,
                      _pending=(spec, no_progress), _grid_where_used=True)
+
+
+def _row_keys(points: np.ndarray) -> np.ndarray:
+    """One number per point that equal coordinates share and different ones almost never do
+    (element by element, so the same point gives the same key in any array)."""
+    return points[:, 0] + points[:, 1] * (math.pi * 1e-3) + points[:, 2] * (math.e * 1e-6)
 
 
 def surface_mask(records, first_only: bool) -> np.ndarray:

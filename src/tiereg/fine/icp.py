@@ -21,6 +21,8 @@ curved patch (a crown, a ridge) the centroid lies off the surface and biases the
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -30,6 +32,10 @@ from .solver import Observer
 
 NORMAL_POINTS = 12  # lidar neighbours of a normal (icp-plane)
 BEND_RAD = 0.15  # a patch turning by more than this across its radius is curved (9 degrees)
+# the tie points on vegetation (:func:`crown_lift`): at least this many estimate their lift, on
+# patches whose normal is within 60 degrees of the vertical
+MIN_CROWNS = 10
+STEADY_NZ = 0.5
 
 
 def point_observer(lidar: np.ndarray) -> Observer:
@@ -60,6 +66,18 @@ class NearestPlanes:
     edge would otherwise measure their distance to a plane tens of metres away: at half overlap
     half the observations, more than any robust weight can trim.
 
+    ``solid`` (one flag per lidar point): where given, the tie points whose nearest lidar point
+    is not on a solid surface (vegetation: :func:`~tiereg.reference.open_ground_mask`) sit a
+    common height, the crowns' lift, above it: an image sees the crowns' tops while a lidar's
+    first returns lie anywhere down the crowns. Where a good share of the block is on trees that
+    shared bias pulled the block down by decimetres, more than any robust weight sets aside.
+    :meth:`fix_lift` measures the lift where the points are at the start of a solve, against the
+    open ground's own distances, and the calls that follow take it off those tie points'
+    distances: they still place and turn the block in plan, and the open ground alone sets its
+    height. Measured against the open ground, the lift does not depend on the block's height, so
+    each solve keeps one value (re-estimated at every iteration it made the fit cycle) and the
+    fine stage's settling passes, each with a new observer, bring it up to date.
+
     :meth:`surface_class` tells the solver's jackknife what kind of surface each observation sees:
     the bend of the patch, from the osculating paraboloid at ``p``, ``h(u) = -kappa |u|^2 / 2``
     fitted to its neighbours (``kappa = -2 sum h_j / sum |u_j|^2``, ``h_j`` their heights over
@@ -69,8 +87,10 @@ class NearestPlanes:
     """
 
     def __init__(self, lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
-                 weighted: bool = False, reach: float = np.inf) -> None:
-        self.lidar, self.weighted, self.reach = lidar, weighted, reach
+                 weighted: bool = False, reach: float = np.inf,
+                 solid: np.ndarray | None = None) -> None:
+        self.lidar, self.weighted, self.reach, self.solid = lidar, weighted, reach, solid
+        self.lift = math.nan
         self._tree = cKDTree(lidar)
         self._k = min(neighbours, len(lidar))
         self._normal = np.full((len(lidar), 3), np.nan)
@@ -97,15 +117,29 @@ class NearestPlanes:
         d = q - self.lidar[idx]
         r = np.einsum("mi,mi->m", n, d)
         ok = np.hypot(d[:, 0], d[:, 1]) <= self.reach
+        if self.solid is not None and math.isfinite(self.lift):
+            r = r - self.lift * n[:, 2] * (ok & ~self.solid[idx])
         if self.weighted:
             sigma = max(nmad(r[ok]), 1e-12) if ok.any() else 1.0
             s = 1.0 / np.sqrt(1.0 + (rho / sigma) ** 2)
             r, n = r * s, n * s[:, None]
         return r, n, ok
 
-    def nearest_points(self, q: np.ndarray) -> np.ndarray:
-        """The lidar point nearest each of ``q`` in 3-D (the one each observes)."""
-        return self.lidar[self._tree.query(q)[1]]
+    def fix_lift(self, q: np.ndarray) -> float:
+        """Measure the crowns' lift at ``q``: the height of the tie points on vegetation above
+        the lidar less that of those on open ground (:func:`crown_lift` of each), and keep it
+        for the calls that follow (NaN, nothing taken off, without ``solid`` or with too few
+        tie points on either)."""
+        if self.solid is None:
+            return math.nan
+        _, idx = self._tree.query(q)
+        n = self._patch(idx)[0]
+        d = q - self.lidar[idx]
+        r = np.einsum("mi,mi->m", n, d)
+        near = np.hypot(d[:, 0], d[:, 1]) <= self.reach
+        crown = near & ~self.solid[idx]
+        self.lift = crown_lift(r, n, crown) - crown_lift(r, n, near & ~crown)
+        return self.lift
 
     def surface_class(self, q: np.ndarray) -> np.ndarray:
         """0 where the patch at the nearest lidar point is concave (it turns up by more than
@@ -115,10 +149,23 @@ class NearestPlanes:
         return np.digitize(turn, (-BEND_RAD, BEND_RAD))
 
 
+def crown_lift(r: np.ndarray, n: np.ndarray, crown: np.ndarray) -> float:
+    """The height of the points ``crown`` above the lidar's surface: the median of their
+    vertical distances ``r / n_z`` over patches less steep than :data:`STEADY_NZ` (on steeper
+    ones a small error in plan is a large one in height); NaN with fewer than
+    :data:`MIN_CROWNS` of them."""
+    steady = crown & (n[:, 2] > STEADY_NZ)
+    if steady.sum() < MIN_CROWNS:
+        return math.nan
+    return float(np.median(r[steady] / n[steady, 2]))
+
+
 def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
-                           weighted: bool = False, reach: float = np.inf) -> NearestPlanes:
+                           weighted: bool = False, reach: float = np.inf,
+                           solid: np.ndarray | None = None) -> NearestPlanes:
     """The nearest-plane observation model (:class:`NearestPlanes`)."""
-    return NearestPlanes(lidar, neighbours=neighbours, weighted=weighted, reach=reach)
+    return NearestPlanes(lidar, neighbours=neighbours, weighted=weighted, reach=reach,
+                         solid=solid)
 
 
 def plane_observer_icp(lidar: np.ndarray) -> Observer:

@@ -7,9 +7,9 @@ Two observation models feed the one solver (:func:`~tiereg.fine.solver.solve_hel
    Rosenholm & Torlegard 1988), where it is gently sloped.
    It needs no lidar points, only the grid, and it pulls a block a cell or two off back in.
 2. **surface**: the normal distance to the lidar's local surface at the nearest first return
-   (LS3D, Gruen & Akca 2005), each patch weighted by how rough it is
-   (:func:`~tiereg.fine.icp.nearest_plane_observer`). The lidar is read once more, and only the
-   points near the tie points are kept.
+   (LS3D, Gruen & Akca 2005), each patch weighted by how rough it is, the crowns' lift taken
+   off the tie points on vegetation (:class:`~tiereg.fine.icp.NearestPlanes`). The lidar is read
+   once more, and only the points near the tie points are kept.
 
 ``lsm`` runs the vertical model, keeps its answer only when it brings the tie points closer to the
 lidar's surface (on rough ground, forest or steep relief, a grid cell's mean height is not the
@@ -38,7 +38,7 @@ from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform
-from .icp import NearestPlanes, nearest_plane_observer, plane_observer_icp, point_observer
+from .icp import nearest_plane_observer, plane_observer_icp, point_observer
 from .planes import SegmentPlanes
 from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 
@@ -60,8 +60,9 @@ MAX_MOVE_CELLS = 2.0  # a fine answer moving the block farther than this (RMS) i
 # 5 m, 1 degree and 0.5 % off, one pass stopped 0.07-1.55 m short (benchmarks/results/fine-far.md)
 MAX_PASSES = 10
 SETTLED_SD = 1.0
-# more of the used tie points on vegetation than this: the fine answer is refused (the biweight's
-# breakdown point: a bias shared by most observations cannot be weighted away)
+# more of the tie points near the lidar on vegetation than this: the fine answer is refused (the
+# crowns' lift is taken off, so the open ground sets the height; less than half of the block is
+# too little to trust, and the lift and the height cannot be told apart)
 MAX_CANOPY_SHARE = 0.5
 _MODEL = {"lsm": "surface", "planes": "planes"}  # the observation model after the vertical one
 
@@ -157,8 +158,10 @@ def register_fine(
     hold = cell_size / 4
     reach = NEAR_SPACINGS * reference.spacing
     radius = max(READ_REACHES * reach, cell_size / 4)
-    lidar = reference.points_near(placed[:, :2], radius)
-    observe = _surface_observer(method, lidar, placed, reference)
+    lidar, solid = _read(reference, placed[:, :2], radius, method=method)
+    # mostly on trees: no lift (it cannot be told from the height), and refused below
+    lift = _canopy_share(placed, lidar, solid, reach=reach) <= MAX_CANOPY_SHARE
+    observe = _surface_observer(method, lidar, placed, reference, solid if lift else None)
     start_spread = _spread(observe, placed)
     model, start, fit = method, Transform.identity(), None
     if method in ("lsm", "planes"):
@@ -177,28 +180,37 @@ def register_fine(
     end_observe = observe
     if method in ("lsm", "planes") and model != "vertical" and fit.n_observed >= 10:
         first = lidar
-        fit, lidar = _settle(fit, placed, lidar, reference, method=method, hold=hold,
-                             radius=radius)
+        fit, lidar, solid = _settle(fit, placed, lidar, solid, reference, method=method,
+                                    hold=hold, radius=radius, lift=lift)
         if lidar is not first:  # read again around where the tie points went: judged there
-            end_observe = _surface_observer(method, lidar, fit.T.apply(placed), reference)
+            end_observe = _surface_observer(method, lidar, fit.T.apply(placed), reference,
+                                            solid if lift else None)
     refused, contradicts = _refusal(fit, placed, observe, start_spread,
                                     MAX_MOVE_CELLS * cell_size,
                                     require_convergence=method in ("lsm", "planes"),
                                     end_observe=end_observe)
     if not refused and method in ("lsm", "planes"):
-        used = fit.T.apply(placed)[fit.weights > 0.5]
-        nearest = (end_observe.nearest_points(used) if isinstance(end_observe, NearestPlanes)
-                   else None)  # its tree already holds the lidar last read
-        refused = _on_canopy(used, lidar, reference, nearest=nearest)
+        refused = _on_canopy(fit.T.apply(placed), lidar, solid, reach=reach)
     if not refused and method == "lsm" and model != "vertical":
         fit = _with_model_error(fit, fit.T.apply(placed), end_observe, hold=hold)
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
                       contradicts, lidar)
 
 
+def _read(reference: Reference, xy: np.ndarray, radius: float, *,
+          method: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """The lidar within ``radius`` of ``xy`` and, for ``lsm`` and ``planes``, which of its
+    points lie on a solid surface (:meth:`~tiereg.reference.Reference.solid_near`)."""
+    if method in ("lsm", "planes"):
+        return reference.solid_near(xy, radius)
+    return reference.points_near(xy, radius), None
+
+
 def _surface_observer(method: str, lidar: np.ndarray, q: np.ndarray,
-                      reference: Reference) -> Observer:
-    """The observation model of ``method`` on ``lidar`` (the points read around ``q``)."""
+                      reference: Reference, solid: np.ndarray | None = None) -> Observer:
+    """The observation model of ``method`` on ``lidar`` (the points read around ``q``); ``lsm``
+    takes the crowns' lift off the tie points on vegetation where ``solid`` tells which lidar
+    points lie on a solid surface (:class:`~tiereg.fine.icp.NearestPlanes`)."""
     if len(lidar) < MIN_LIDAR:
         return _no_observations
     if method == "icp-point":
@@ -207,12 +219,15 @@ def _surface_observer(method: str, lidar: np.ndarray, q: np.ndarray,
         return plane_observer_icp(lidar)
     if method == "planes":
         return SegmentPlanes(lidar, q, spacing=reference.spacing)
-    return nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True,
-                                  reach=NEAR_SPACINGS * reference.spacing)
+    observe = nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True,
+                                     reach=NEAR_SPACINGS * reference.spacing, solid=solid)
+    observe.fix_lift(q)
+    return observe
 
 
-def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: Reference, *,
-            method: str, hold: float, radius: float) -> tuple[HelmertFit, np.ndarray]:
+def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, solid: np.ndarray | None,
+            reference: Reference, *, method: str, hold: float, radius: float, lift: bool
+            ) -> tuple[HelmertFit, np.ndarray, np.ndarray | None]:
     """Again from where the fit ended, until the pose stops moving: each pass re-selects the
     lidar right around the tie points (far from the answer the nearest point in 3-D may lie
     beside a tie point, up a slope or on the next crown; ``planes``: segmented again around
@@ -226,27 +241,30 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, reference: R
     standard deviations of that displacement: a move the data cannot tell from none (a fresh
     selection of neighbours moves a settled fit back and forth by a third of one or more); a
     fit still moving after :data:`MAX_PASSES` passes has not converged, and its precision means
-    nothing. Returns the fit and the lidar last read."""
+    nothing. ``lift``: whether the crowns' lift is taken off (:func:`_surface_observer`).
+    Returns the fit and the lidar last read, with its solid flags."""
     reach = NEAR_SPACINGS * reference.spacing
     read_at = placed[:, :2]
     for _ in range(MAX_PASSES):
         q = fit.T.apply(placed)
         if np.max(np.hypot(*(q[:, :2] - read_at).T)) > radius - reach:
             read_at, radius = q[:, :2], READ_REACHES * reach
-            lidar = reference.points_near(read_at, radius)
+            lidar, solid = _read(reference, read_at, radius, method=method)
         close = _within(lidar, q[:, :2], reach)
-        if len(close) < MIN_LIDAR:
-            return fit, lidar
+        if close.sum() < MIN_LIDAR:
+            return fit, lidar, solid
         # planes segments the lidar read; lsm's patches see only the lidar within a reach
-        near = _surface_observer(method, lidar if method == "planes" else close, q, reference)
+        near = (_surface_observer(method, lidar, q, reference, solid) if method == "planes"
+                else _surface_observer(method, lidar[close], q, reference,
+                                       solid[close] if lift and solid is not None else None))
         again = solve_helmert(q, near, hold_displacement=hold, biweight_from_start=True)
         if again.n_observed < 10:
-            return fit, lidar
+            return fit, lidar, solid
         moved = float(np.sqrt(np.mean(np.sum((again.T.apply(q) - q) ** 2, axis=1))))
         fit = replace(again, T=again.T @ fit.T)
         if moved < max(hold / 1000, SETTLED_SD * _displacement_sd(again, q)):
-            return fit, lidar
-    return replace(fit, converged=False), lidar
+            return fit, lidar, solid
+    return replace(fit, converged=False), lidar, solid
 
 
 def _with_model_error(fit: HelmertFit, q: np.ndarray, whole: Observer, *,
@@ -268,29 +286,32 @@ def _with_model_error(fit: HelmertFit, q: np.ndarray, whole: Observer, *,
     return replace(fit, sigma=np.hypot(fit.sigma, move))
 
 
-def _on_canopy(q: np.ndarray, lidar: np.ndarray, reference: Reference, *,
-               nearest: np.ndarray | None = None) -> str:
-    """Why the fine answer's heights cannot be trusted where most of the tie points it used,
-    ``q``, have their nearest lidar point (of ``lidar``) on vegetation ("" where they do not):
-    classed so, or of a pulse that split into several returns
-    (:func:`~tiereg.reference.open_ground_mask`). There the lidar's first returns lie anywhere
-    down the crowns while an image sees their tops; with more than :data:`MAX_CANOPY_SHARE` of
-    the observations sharing that bias, no robust weight sets it aside. Lidar without classes
-    or returns (XYZ text, PLY) counts as open ground. ``nearest``: those lidar points, where
-    the caller has them (an observer's tree over ``lidar``), else found here."""
-    if len(q) < 10 or len(lidar) == 0 or not reference.knows_open_ground:
-        return ""  # without classes or returns there is nothing to read again
-    if nearest is None:
-        nearest = lidar[cKDTree(lidar).query(q)[1]]
-    solid = reference.points_near(q[:, :2], NEAR_SPACINGS * reference.spacing, open_ground=True)
-    on_open = (cKDTree(solid).query(nearest)[0] == 0.0 if len(solid)
-               else np.zeros(len(q), bool))
-    canopy = 1.0 - float(on_open.mean())
+def _canopy_share(q: np.ndarray, lidar: np.ndarray, solid: np.ndarray | None, *,
+                  reach: float) -> float:
+    """The share of the tie points ``q`` with a lidar point within ``reach`` in plan whose
+    nearest one (in 3-D) is not on a solid surface (:func:`~tiereg.reference.open_ground_mask`);
+    0 without ``solid`` (no classes or returns: open ground) or with fewer than 10 such."""
+    if solid is None or solid.all() or len(q) < 10 or len(lidar) == 0:
+        return 0.0
+    _, idx = cKDTree(lidar).query(q)
+    near = np.hypot(*(q[:, :2] - lidar[idx, :2]).T) <= reach
+    return 1.0 - float(solid[idx[near]].mean()) if near.sum() >= 10 else 0.0
+
+
+def _on_canopy(q: np.ndarray, lidar: np.ndarray, solid: np.ndarray | None, *,
+               reach: float) -> str:
+    """Why the fine answer's heights cannot be trusted where more than
+    :data:`MAX_CANOPY_SHARE` of the tie points ``q`` near the lidar sit on vegetation
+    (:func:`_canopy_share`; "" where they do not). The crowns' lift above the lidar is taken off
+    (:class:`~tiereg.fine.icp.NearestPlanes`) so that the open ground sets the block's height;
+    with most of the block on trees, too little open ground is left, and the lift cannot be told
+    from the height."""
+    canopy = _canopy_share(q, lidar, solid, reach=reach)
     if canopy <= MAX_CANOPY_SHARE:
         return ""
-    return (f"most of the tie points it used ({canopy:.0%}) sit on vegetation, where the lidar's "
-            "first returns fill the crowns' depth and an image sees their tops: their heights "
-            "do not settle the block's")
+    return (f"most of the tie points ({canopy:.0%}) sit on vegetation, where the lidar's "
+            "first returns fill the crowns' depth and an image sees their tops: too few are "
+            "left to settle the block's heights")
 
 
 def _displacement_sd(fit: HelmertFit, q: np.ndarray) -> float:
@@ -303,9 +324,9 @@ def _displacement_sd(fit: HelmertFit, q: np.ndarray) -> float:
 
 
 def _within(points: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:
-    """The ``points`` within ``radius`` (in plan) of any of ``xy``."""
+    """Which of ``points`` lie within ``radius`` (in plan) of any of ``xy``."""
     dist, _ = cKDTree(xy).query(points[:, :2], distance_upper_bound=radius)
-    return points[np.isfinite(dist)]
+    return np.isfinite(dist)
 
 
 def _spread(observe: Observer, q: np.ndarray) -> float:
