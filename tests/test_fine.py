@@ -363,6 +363,14 @@ def test_the_observer_takes_the_crowns_lift_against_the_open_ground_off():
     assert ok.all()
     assert np.allclose(r, 0.1, atol=1e-9)
     assert np.isnan(NearestPlanes(lidar, neighbours=8, reach=2.0).fix_lift(q))
+    # a lift below the open ground (no crown's top is under its first returns), or one within
+    # the noise, is not taken off
+    below = q.copy()
+    below[:, 2] = np.where(q[:, 0] < 30, 0.5, 0.1)
+    assert np.isnan(observe.fix_lift(below))
+    noisy = q.copy()
+    noisy[:, 2] = np.where(q[:, 0] < 30, 0.0, 0.05) + rng.normal(0.0, 0.5, len(q))
+    assert np.isnan(observe.fix_lift(noisy))  # 0.05 m against a standard error of 0.09 m
 
 
 def test_crown_lift_is_the_median_height_over_steady_patches():

@@ -36,6 +36,9 @@ BEND_RAD = 0.15  # a patch turning by more than this across its radius is curved
 # patches whose normal is within 60 degrees of the vertical
 MIN_CROWNS = 10
 STEADY_NZ = 0.5
+# a lift is taken off only where it is positive (an image sees the crowns' tops, the first
+# returns lie below them, never above) by at least this many standard errors (one-sided, 97.7 %)
+LIFT_SE = 2.0
 
 
 def point_observer(lidar: np.ndarray) -> Observer:
@@ -72,9 +75,11 @@ class NearestPlanes:
     first returns lie anywhere down the crowns. Where a good share of the block is on trees that
     shared bias pulled the block down by decimetres, more than any robust weight sets aside.
     :meth:`fix_lift` measures the lift where the points are at the start of a solve, against the
-    open ground's own distances, and the calls that follow take it off those tie points'
+    open ground's own distances, and where the data show one (above the open ground by
+    :data:`LIFT_SE` standard errors) the calls that follow take it off those tie points'
     distances: they still place and turn the block in plan, and the open ground alone sets its
-    height. Measured against the open ground, the lift does not depend on the block's height, so
+    height. Where the crowns' tie points do sit on the lidar, the lift is not taken off and they
+    count in height like the others. Measured against the open ground, the lift does not depend on the block's height, so
     each solve keeps one value (re-estimated at every iteration it made the fit cycle) and the
     fine stage's settling passes, each with a new observer, bring it up to date.
 
@@ -128,17 +133,20 @@ class NearestPlanes:
     def fix_lift(self, q: np.ndarray) -> float:
         """Measure the crowns' lift at ``q``: the height of the tie points on vegetation above
         the lidar less that of those on open ground (:func:`crown_lift` of each), and keep it
-        for the calls that follow (NaN, nothing taken off, without ``solid`` or with too few
-        tie points on either)."""
+        for the calls that follow where the data show it (:data:`LIFT_SE`); NaN, nothing taken
+        off, where they do not, without ``solid`` or with too few tie points on either."""
+        self.lift = math.nan
         if self.solid is None:
-            return math.nan
+            return self.lift
         _, idx = self._tree.query(q)
         n = self._patch(idx)[0]
         d = q - self.lidar[idx]
         r = np.einsum("mi,mi->m", n, d)
         near = np.hypot(d[:, 0], d[:, 1]) <= self.reach
-        crown = near & ~self.solid[idx]
-        self.lift = crown_lift(r, n, crown) - crown_lift(r, n, near & ~crown)
+        crown, ground = near & ~self.solid[idx], near & self.solid[idx]
+        lift = crown_lift(r, n, crown) - crown_lift(r, n, ground)
+        if lift > LIFT_SE * (lift_se(r, n, crown) ** 2 + lift_se(r, n, ground) ** 2) ** 0.5:
+            self.lift = lift
         return self.lift
 
     def surface_class(self, q: np.ndarray) -> np.ndarray:
@@ -158,6 +166,14 @@ def crown_lift(r: np.ndarray, n: np.ndarray, crown: np.ndarray) -> float:
     if steady.sum() < MIN_CROWNS:
         return math.nan
     return float(np.median(r[steady] / n[steady, 2]))
+
+
+def lift_se(r: np.ndarray, n: np.ndarray, crown: np.ndarray) -> float:
+    """The standard error of :func:`crown_lift`: ``1.2533 NMAD / sqrt(m)`` over its ``m``
+    vertical distances (the median's, at normal errors)."""
+    steady = crown & (n[:, 2] > STEADY_NZ)
+    v = r[steady] / n[steady, 2]
+    return 1.2533 * nmad(v) / math.sqrt(len(v)) if len(v) >= MIN_CROWNS else math.inf
 
 
 def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,
