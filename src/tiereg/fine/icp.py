@@ -79,9 +79,10 @@ class NearestPlanes:
     :data:`LIFT_SE` standard errors) the calls that follow take it off those tie points'
     distances: they still place and turn the block in plan, and the open ground alone sets its
     height. Where the crowns' tie points do sit on the lidar, the lift is not taken off and they
-    count in height like the others. Measured against the open ground, the lift does not depend on the block's height, so
-    each solve keeps one value (re-estimated at every iteration it made the fit cycle) and the
-    fine stage's settling passes, each with a new observer, bring it up to date.
+    count in height like the others. Measured against the open ground, the lift does not depend
+    on the block's height, so each solve keeps one value (re-estimated at every iteration it made
+    the fit cycle) and the fine stage's settling passes, each with a new observer, bring it up
+    to date.
 
     :meth:`surface_class` tells the solver's jackknife what kind of surface each observation sees:
     the bend of the patch, from the osculating paraboloid at ``p``, ``h(u) = -kappa |u|^2 / 2``
