@@ -150,6 +150,10 @@ class NearestPlanes:
             self.lift = lift
         return self.lift
 
+    def nearest(self, q: np.ndarray) -> np.ndarray:
+        """The index of the lidar point nearest each of ``q`` in 3-D (the one it observes)."""
+        return self._tree.query(q)[1]
+
     def surface_class(self, q: np.ndarray) -> np.ndarray:
         """0 where the patch at the nearest lidar point is concave (it turns up by more than
         :data:`BEND_RAD` across its radius), 2 where convex, 1 where it is about flat."""
@@ -163,18 +167,22 @@ def crown_lift(r: np.ndarray, n: np.ndarray, crown: np.ndarray) -> float:
     vertical distances ``r / n_z`` over patches less steep than :data:`STEADY_NZ` (on steeper
     ones a small error in plan is a large one in height); NaN with fewer than
     :data:`MIN_CROWNS` of them."""
-    steady = crown & (n[:, 2] > STEADY_NZ)
-    if steady.sum() < MIN_CROWNS:
-        return math.nan
-    return float(np.median(r[steady] / n[steady, 2]))
+    v = _vertical(r, n, crown)
+    return float(np.median(v)) if len(v) >= MIN_CROWNS else math.nan
 
 
 def lift_se(r: np.ndarray, n: np.ndarray, crown: np.ndarray) -> float:
     """The standard error of :func:`crown_lift`: ``1.2533 NMAD / sqrt(m)`` over its ``m``
-    vertical distances (the median's, at normal errors)."""
-    steady = crown & (n[:, 2] > STEADY_NZ)
-    v = r[steady] / n[steady, 2]
+    vertical distances (the median's, at normal errors); inf where it has none."""
+    v = _vertical(r, n, crown)
     return 1.2533 * nmad(v) / math.sqrt(len(v)) if len(v) >= MIN_CROWNS else math.inf
+
+
+def _vertical(r: np.ndarray, n: np.ndarray, crown: np.ndarray) -> np.ndarray:
+    """The vertical distances ``r / n_z`` of the points ``crown`` on patches less steep than
+    :data:`STEADY_NZ`."""
+    steady = crown & (n[:, 2] > STEADY_NZ)
+    return r[steady] / n[steady, 2]
 
 
 def nearest_plane_observer(lidar: np.ndarray, *, neighbours: int = NORMAL_POINTS,

@@ -38,7 +38,7 @@ from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
 from ..transform import Transform
-from .icp import nearest_plane_observer, plane_observer_icp, point_observer
+from .icp import NearestPlanes, nearest_plane_observer, plane_observer_icp, point_observer
 from .planes import SegmentPlanes
 from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
 
@@ -159,9 +159,11 @@ def register_fine(
     reach = NEAR_SPACINGS * reference.spacing
     radius = max(READ_REACHES * reach, cell_size / 4)
     lidar, solid = _read(reference, placed[:, :2], radius, method=method)
+    observe = _surface_observer(method, lidar, placed, reference, solid, lift=False)
     # mostly on trees: no lift (it cannot be told from the height), and refused below
-    lift = _canopy_share(placed, lidar, solid, reach=reach) <= MAX_CANOPY_SHARE
-    observe = _surface_observer(method, lidar, placed, reference, solid if lift else None)
+    lift = _canopy_share(placed, lidar, solid, reach=reach, observe=observe) <= MAX_CANOPY_SHARE
+    if lift and isinstance(observe, NearestPlanes):
+        observe.fix_lift(placed)
     start_spread = _spread(observe, placed)
     model, start, fit = method, Transform.identity(), None
     if method in ("lsm", "planes"):
@@ -184,13 +186,14 @@ def register_fine(
                                     hold=hold, radius=radius, lift=lift)
         if lidar is not first:  # read again around where the tie points went: judged there
             end_observe = _surface_observer(method, lidar, fit.T.apply(placed), reference,
-                                            solid if lift else None)
+                                            solid, lift=lift)
     refused, contradicts = _refusal(fit, placed, observe, start_spread,
                                     MAX_MOVE_CELLS * cell_size,
                                     require_convergence=method in ("lsm", "planes"),
                                     end_observe=end_observe)
     if not refused and method in ("lsm", "planes"):
-        refused = _on_canopy(fit.T.apply(placed), lidar, solid, reach=reach)
+        refused = _on_canopy(fit.T.apply(placed), lidar, solid, reach=reach,
+                             observe=end_observe)
     if not refused and method == "lsm" and model != "vertical":
         fit = _with_model_error(fit, fit.T.apply(placed), end_observe, hold=hold)
     return FineResult(fit.T, method, model, fit, len(lidar), time.perf_counter() - t0, refused,
@@ -206,11 +209,12 @@ def _read(reference: Reference, xy: np.ndarray, radius: float, *,
     return reference.points_near(xy, radius), None
 
 
-def _surface_observer(method: str, lidar: np.ndarray, q: np.ndarray,
-                      reference: Reference, solid: np.ndarray | None = None) -> Observer:
-    """The observation model of ``method`` on ``lidar`` (the points read around ``q``); ``lsm``
-    takes the crowns' lift off the tie points on vegetation where ``solid`` tells which lidar
-    points lie on a solid surface (:class:`~tiereg.fine.icp.NearestPlanes`)."""
+def _surface_observer(method: str, lidar: np.ndarray, q: np.ndarray, reference: Reference,
+                      solid: np.ndarray | None = None, *, lift: bool = True) -> Observer:
+    """The observation model of ``method`` on ``lidar`` (the points read around ``q``); with
+    ``lift``, ``lsm`` takes the crowns' lift, measured at ``q``, off the tie points on
+    vegetation where ``solid`` tells which lidar points lie on a solid surface
+    (:class:`~tiereg.fine.icp.NearestPlanes`)."""
     if len(lidar) < MIN_LIDAR:
         return _no_observations
     if method == "icp-point":
@@ -221,7 +225,8 @@ def _surface_observer(method: str, lidar: np.ndarray, q: np.ndarray,
         return SegmentPlanes(lidar, q, spacing=reference.spacing)
     observe = nearest_plane_observer(lidar, neighbours=SURFACE_POINTS, weighted=True,
                                      reach=NEAR_SPACINGS * reference.spacing, solid=solid)
-    observe.fix_lift(q)
+    if lift:
+        observe.fix_lift(q)
     return observe
 
 
@@ -254,9 +259,9 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, solid: np.nd
         if close.sum() < MIN_LIDAR:
             return fit, lidar, solid
         # planes segments the lidar read; lsm's patches see only the lidar within a reach
-        near = (_surface_observer(method, lidar, q, reference, solid) if method == "planes"
+        near = (_surface_observer(method, lidar, q, reference) if method == "planes"
                 else _surface_observer(method, lidar[close], q, reference,
-                                       solid[close] if lift and solid is not None else None))
+                                       None if solid is None else solid[close], lift=lift))
         again = solve_helmert(q, near, hold_displacement=hold, biweight_from_start=True)
         if again.n_observed < 10:
             return fit, lidar, solid
@@ -287,26 +292,29 @@ def _with_model_error(fit: HelmertFit, q: np.ndarray, whole: Observer, *,
 
 
 def _canopy_share(q: np.ndarray, lidar: np.ndarray, solid: np.ndarray | None, *,
-                  reach: float) -> float:
+                  reach: float, observe: Observer | None = None) -> float:
     """The share of the tie points ``q`` with a lidar point within ``reach`` in plan whose
     nearest one (in 3-D) is not on a solid surface (:func:`~tiereg.reference.open_ground_mask`);
-    0 without ``solid`` (no classes or returns: open ground) or with fewer than 10 such."""
+    0 without ``solid`` (no classes or returns: open ground) or with fewer than 10 such.
+    ``observe``: a :class:`~tiereg.fine.icp.NearestPlanes` over ``lidar`` whose tree finds the
+    nearest points (else one is built)."""
     if solid is None or solid.all() or len(q) < 10 or len(lidar) == 0:
         return 0.0
-    _, idx = cKDTree(lidar).query(q)
+    idx = (observe.nearest(q) if isinstance(observe, NearestPlanes)
+           else cKDTree(lidar).query(q)[1])
     near = np.hypot(*(q[:, :2] - lidar[idx, :2]).T) <= reach
     return 1.0 - float(solid[idx[near]].mean()) if near.sum() >= 10 else 0.0
 
 
 def _on_canopy(q: np.ndarray, lidar: np.ndarray, solid: np.ndarray | None, *,
-               reach: float) -> str:
+               reach: float, observe: Observer | None = None) -> str:
     """Why the fine answer's heights cannot be trusted where more than
     :data:`MAX_CANOPY_SHARE` of the tie points ``q`` near the lidar sit on vegetation
     (:func:`_canopy_share`; "" where they do not). The crowns' lift above the lidar is taken off
     (:class:`~tiereg.fine.icp.NearestPlanes`) so that the open ground sets the block's height;
     with most of the block on trees, too little open ground is left, and the lift cannot be told
     from the height."""
-    canopy = _canopy_share(q, lidar, solid, reach=reach)
+    canopy = _canopy_share(q, lidar, solid, reach=reach, observe=observe)
     if canopy <= MAX_CANOPY_SHARE:
         return ""
     return (f"most of the tie points ({canopy:.0%}) sit on vegetation, where the lidar's "
