@@ -49,23 +49,23 @@ def test_roughness_is_half_the_range_of_the_nearest_cells_neighbourhood():
         assert got[k] == pytest.approx(0.5 * (block.max() - block.min()), abs=1e-12)
 
 
-def _smooth_block(rng, shape=(400, 400), cell=2.0):
-    """A smooth surface (metres) and 3,000 points on it, scaled 1.1 and shifted by 400 m; the
-    block reaches beyond the surface on all sides (partial overlap)."""
+def _smooth_block(rng, shape=(400, 400), cell=2.0, n_points=3000):
+    """A smooth surface (metres) and ``n_points`` points on it, scaled 1.1 and shifted by 400 m;
+    the block reaches beyond the surface on all sides (partial overlap)."""
     yy, xx = np.mgrid[0:shape[0], 0:shape[1]] * cell
     surface = 8 * np.sin(xx / 90.0) * np.cos(yy / 70.0) + 3 * np.sin((xx + yy) / 37.0)
     grid = Grid(GridSpec(0.0, shape[0] * cell, cell, shape), np.ones(shape, np.int64),
                 {"mean": surface}, None)
     sampler = SurfaceSampler.from_grid(grid)
-    p = rng.uniform(-450, 450, (3000, 2))  # model units, centred
+    p = rng.uniform(-450, 450, (n_points, 2))  # model units, centred
     q = 1.1 * p + 400.0
     rows, cols = grid.spec.rowcol(q[:, 0], q[:, 1])
     z = ndimage.map_coordinates(surface, np.vstack([rows, cols]), order=1, mode="nearest")
     z = z + rng.normal(0, 0.3, len(z))  # heights in model units too, with noise
 
-    def place(params):
-        s = math.exp(params[0])
-        return np.column_stack([s * p + params[1:3], s * z / 1.1])
+    def place(params):  # (K, 3) -> (K, N, 3)
+        s = np.exp(params[:, 0])[:, None, None]
+        return np.concatenate([s * p + params[:, None, 1:3], s * z[:, None] / 1.1], axis=2)
 
     return sampler, place
 
@@ -86,7 +86,7 @@ def _compass_one_call_at_a_time(place, sampler, p, steps, stop):
     inner = sampler.inner(EDGE_MARGIN_CELLS)
 
     def residuals(params):
-        pts = place(params)
+        pts = place(params[None])[0]
         z, deep = sampler.sample(pts[:, 0], pts[:, 1], within=inner)
         return z - pts[:, 2], deep
 
@@ -114,8 +114,9 @@ def _compass_one_call_at_a_time(place, sampler, p, steps, stop):
     return p
 
 
-def test_fits_in_lock_step_are_the_fits_one_at_a_time():
-    sampler, place = _smooth_block(np.random.default_rng(2))
+@pytest.mark.parametrize("n_points", [3000, 300])
+def test_fits_in_lock_step_are_the_fits_one_at_a_time(n_points):
+    sampler, place = _smooth_block(np.random.default_rng(2), n_points=n_points)
     steps = np.array([math.log(1.01), 1.0, 1.0])
     starts = [np.array([math.log(s), 400.0 + dx, 400.0 - dx])
               for s, dx in ((1.0, 6.0), (1.15, -3.0), (1.05, 0.0), (0.97, 9.0))]
@@ -126,5 +127,7 @@ def test_fits_in_lock_step_are_the_fits_one_at_a_time():
                                             steps / 64)
         assert fit.converged and fit.iterations > 3
         assert np.allclose(fit.params, alone, rtol=0, atol=1e-9)
-    assert {round(math.exp(f.params[0]), 3) for f in fits[:-1]} == {1.1}  # all found the truth
+    # all found the truth, to about what that many points with 0.3 m of noise tell
+    assert all(abs(math.exp(f.params[0]) / 1.1 - 1) < 0.05 / math.sqrt(n_points)
+               for f in fits[:-1])
     assert fits[-1].n_used == 0 and not fits[-1].converged and np.isnan(fits[-1].sigma0)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tiereg import InputError, Transform
-from tiereg.transform import rotation_matrix
+from tiereg.transform import rotation_matrices, rotation_matrix
 
 angles = st.floats(-np.pi + 1e-3, np.pi - 1e-3)
 small = st.floats(-1.4, 1.4)  # phi kept away from +-90 deg, where omega and kappa mix
@@ -122,3 +122,12 @@ def test_immutable():
     T = Transform.identity()
     with pytest.raises(ValueError):
         T.matrix[0, 3] = 5.0
+
+
+def test_rotation_matrices_are_rotation_matrix_of_each_triple():
+    rng = np.random.default_rng(5)
+    angles = rng.uniform(-np.pi, np.pi, (50, 3))
+    got = rotation_matrices(angles[:, 0], angles[:, 1], angles[:, 2])
+    assert got.shape == (50, 3, 3)
+    for (omega, phi, kappa), R in zip(angles, got):
+        assert np.allclose(R, rotation_matrix(omega, phi, kappa), rtol=0, atol=1e-15)

@@ -32,6 +32,19 @@ def rotation_matrix(omega: float, phi: float, kappa: float) -> np.ndarray:
     return rz @ ry @ rx
 
 
+def rotation_matrices(omega: np.ndarray, phi: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+    """:func:`rotation_matrix` of each of ``K`` angle triples at once: ``(K, 3, 3)``."""
+    omega, phi, kappa = (np.asarray(a, dtype=np.float64) for a in (omega, phi, kappa))
+    co, so = np.cos(omega), np.sin(omega)
+    cp, sp = np.cos(phi), np.sin(phi)
+    ck, sk = np.cos(kappa), np.sin(kappa)
+    one, zero = np.ones_like(co), np.zeros_like(co)
+    rx = np.stack([one, zero, zero, zero, co, -so, zero, so, co], axis=-1).reshape(-1, 3, 3)
+    ry = np.stack([cp, zero, sp, zero, one, zero, -sp, zero, cp], axis=-1).reshape(-1, 3, 3)
+    rz = np.stack([ck, -sk, zero, sk, ck, zero, zero, zero, one], axis=-1).reshape(-1, 3, 3)
+    return rz @ ry @ rx
+
+
 @dataclass(frozen=True)
 class Helmert7:
     """The seven parameters of a similarity: scale, rotations (radians) and translation."""

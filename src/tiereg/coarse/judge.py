@@ -21,7 +21,7 @@ import numpy as np
 from ..reference import Reference
 from ..robust import nmad
 from ..surface import SurfaceSampler
-from ..transform import Transform, rotation_matrix
+from ..transform import Transform, rotation_matrices
 from .refine import SurfaceFit, fit_to_surface, fit_to_surface_many, height_offset
 from .result import Candidate, CoarseResult, Evidence, Moments, Peak, Refinement
 from .scoring import HEIGHTS, MIN_OVERLAP, OBJECTS, Channel, Hypothesis, ScaleRange
@@ -64,18 +64,19 @@ TRUST = {
 
 
 def _place(xyz: np.ndarray):
-    """Parameters ``(kappa, ln sigma, tx, ty, omega, phi)`` -> placed points (no height offset).
+    """Parameters ``(K, 6)``, rows ``(kappa, ln sigma, tx, ty, omega, phi)`` -> the points
+    placed by each row, ``(K, N, 3)`` (no height offset).
 
     The tilts are small corrections about the block centre (the local origin): a block that is
     not quite level must not bend the heading, scale and shift to fit the heights.
     """
 
-    def place(p: np.ndarray) -> np.ndarray:
-        kappa, log_sigma, tx, ty, omega, phi = p
-        R = math.exp(log_sigma) * rotation_matrix(omega, phi, kappa)
-        q = xyz @ R.T
-        q[:, 0] += tx
-        q[:, 1] += ty
+    def place(params: np.ndarray) -> np.ndarray:
+        kappa, log_sigma, tx, ty, omega, phi = np.asarray(params, dtype=np.float64).T
+        R = np.exp(log_sigma)[:, None, None] * rotation_matrices(omega, phi, kappa)
+        q = xyz @ R.transpose(0, 2, 1)
+        q[..., 0] += tx[:, None]
+        q[..., 1] += ty[:, None]
         return q
 
     return place
@@ -225,7 +226,7 @@ def _refined(moving_xyz: np.ndarray, best: Hypothesis, cell: float, fits: FitCac
     turned = abs(math.degrees(kappa - best.kappa))
     rescaled = abs(log_sigma - math.log(best.sigma))
     # how much of the height variation the pose explains: residual spread over surface spread
-    placed = _place(moving_xyz)(fit.params)
+    placed = _place(moving_xyz)(fit.params[None])[0]
     z_surf, ok = sampler.sample(placed[:, 0], placed[:, 1])
     spread = nmad(z_surf[ok]) if ok.sum() > 10 else float("nan")
     residual_ratio = fit.sigma0 / spread if spread and np.isfinite(spread) else float("inf")

@@ -57,15 +57,16 @@ def fit_to_surface(
 ) -> SurfaceFit:
     """Minimise a robust loss of vertical distances of placed points to the surface.
 
-    ``place(params)`` returns the points ``(N, 3)`` in surface coordinates without the height
-    offset; the offset is profiled out as ``tz = median(Z(x, y) - z)`` and the loss is
-    the mean of ``rho((Z - z - tz) / s)`` with Tukey's bounded ``rho`` and a fixed scale ``s``
-    (NMAD at the start), so canopy points and blunders cannot pull the answer. A compass
-    (pattern) search minimises it: derivative-free, hence indifferent to the noisy gradients of
-    a gridded surface. It starts with ``steps`` per parameter, halves them when no move helps,
-    and stops when they are below ``tol_fraction`` of the start. Points count at a pose when
-    they lie at least :data:`EDGE_MARGIN_CELLS` inside the surface there; a pose that loses more
-    than ``1 - MIN_KEPT`` of the starting points is refused.
+    ``place(params)`` takes ``K`` parameter rows ``(K, P)`` and returns the points each places,
+    ``(K, N, 3)``, in surface coordinates without the height offset; the offset is profiled
+    out as ``tz = median(Z(x, y) - z)`` and the loss is the mean of ``rho((Z - z - tz) / s)``
+    with Tukey's bounded ``rho`` and a fixed scale ``s`` (NMAD at the start), so canopy points
+    and blunders cannot pull the answer. A compass (pattern) search minimises it:
+    derivative-free, hence indifferent to the noisy gradients of a gridded surface. It starts
+    with ``steps`` per parameter, halves them when no move helps, and stops when they are below
+    ``tol_fraction`` of the start. Points count at a pose when they lie at least
+    :data:`EDGE_MARGIN_CELLS` inside the surface there; a pose that loses more than
+    ``1 - MIN_KEPT`` of the starting points is refused.
     """
     return fit_to_surface_many(place, sampler, [initial], steps, tol_fraction=tol_fraction,
                                max_iterations=max_iterations)[0]
@@ -93,7 +94,7 @@ def fit_to_surface_many(
 
     def residuals(params: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """``(K, N)`` residuals ``Z - z`` and whether each point counts, for ``K`` poses."""
-        pts = np.stack([place(p) for p in params])
+        pts = place(np.stack(params))
         z, deep = sampler.sample(pts[..., 0].ravel(), pts[..., 1].ravel(), within=inner)
         return z.reshape(pts.shape[:2]) - pts[..., 2], deep.reshape(pts.shape[:2])
 
@@ -119,8 +120,11 @@ def fit_to_surface_many(
         trials[k] = _advance(searches[k], None, ends, k)
     while trials:
         rows = list(trials)
-        for k, value in zip(rows, losses(rows, [trials[k] for k in rows])):
-            trials[k] = _advance(searches[k], value, ends, k)
+        counts = [len(trials[k]) for k in rows]
+        values = losses([k for k, n in zip(rows, counts) for _ in range(n)],
+                        [t for k in rows for t in trials[k]])
+        for k, chunk in zip(rows, np.split(values, np.cumsum(counts)[:-1])):
+            trials[k] = _advance(searches[k], chunk, ends, k)
             if trials[k] is None:
                 del trials[k]
 
@@ -136,32 +140,36 @@ def fit_to_surface_many(
 
 
 def _compass(p: np.ndarray, best: float, steps: np.ndarray, stop: np.ndarray,
-             max_iterations: int) -> Generator[np.ndarray, float, tuple[np.ndarray, int, bool]]:
+             max_iterations: int
+             ) -> Generator[list[np.ndarray], np.ndarray, tuple[np.ndarray, int, bool]]:
     """The compass search of :func:`fit_to_surface`: yields trial poses, is sent their losses,
     and returns ``(pose, iterations, converged)``. Each parameter in turn moves by its step up,
-    else down, where that lowers the loss; a round without a move halves the steps."""
+    else down, where that lowers the loss; a round without a move halves the steps. The two
+    trials of a parameter are evaluated together (the same search as one after the other)."""
     it = 0
     while np.any(steps >= stop) and it < max_iterations:
         it += 1
         moved = False
         for i in np.flatnonzero(steps >= stop):
-            for sign in (1.0, -1.0):
-                trial = p.copy()
-                trial[i] += sign * steps[i]
-                value = yield trial
+            trials = [p.copy(), p.copy()]
+            trials[0][i] += steps[i]
+            trials[1][i] -= steps[i]
+            values = yield trials
+            for trial, value in zip(trials, values):
                 if value < best:
-                    p, best, moved = trial, value, True
+                    p, best, moved = trial, float(value), True
                     break
         if not moved:
             steps = steps / 2
     return p, it, not np.any(steps >= stop)
 
 
-def _advance(search: Generator, value: float | None, ends: dict, key: int) -> np.ndarray | None:
-    """The next trial pose of a compass search (``None``, with its end kept in ``ends``, when
+def _advance(search: Generator, values: np.ndarray | None, ends: dict,
+             key: int) -> list[np.ndarray] | None:
+    """The next trial poses of a compass search (``None``, with its end kept in ``ends``, when
     it has finished)."""
     try:
-        return next(search) if value is None else search.send(value)
+        return next(search) if values is None else search.send(values)
     except StopIteration as end:
         ends[key] = end.value
         return None
@@ -192,8 +200,12 @@ def refine_translation(
     """
     t0 = np.asarray(initial, dtype=np.float64)[:2]
     radius = sampler.grid.spec.cell_size if search_radius is None else search_radius
-    fit = fit_to_surface(lambda t: xyz + [t[0], t[1], 0.0], sampler, t0,
-                         np.array([radius / 2, radius / 2]), tol_fraction=1 / 256)
+
+    def place(t: np.ndarray) -> np.ndarray:  # (K, 2) shifts -> (K, N, 3)
+        return xyz + np.column_stack([t, np.zeros(len(t))])[:, None, :]
+
+    fit = fit_to_surface(place, sampler, t0, np.array([radius / 2, radius / 2]),
+                         tol_fraction=1 / 256)
     inside = np.hypot(*(fit.params - t0)) <= radius
     return TranslationFit((float(fit.params[0]), float(fit.params[1]), fit.tz), fit.iterations,
                           fit.converged and inside, fit.n_used, fit.sigma0)
