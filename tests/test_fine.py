@@ -582,3 +582,45 @@ def test_a_converged_fit_has_settled_and_one_that_broke_off_has_settled_nowhere(
     assert fit.wander < 0.05  # the last iterates lie within a few centimetres of the answer
     broke = solve_helmert(q, _plane_observer(seen=5), hold_displacement=5.0)
     assert not broke.converged and broke.wander == np.inf
+
+
+def _step_fit(T, centre, n):
+    """A settling pass's fit: increment ``T`` with 5 cm standard deviations in the shifts."""
+    from tiereg.fine.solver import HelmertFit
+
+    sigma = np.array([0.0, 0.0, 0.0, 0.0, 0.05, 0.05, 0.05])
+    return HelmertFit(T, centre, sigma, (), 0.1, n, n, np.ones(n), np.zeros(n), 3, True, 0.0)
+
+
+@pytest.mark.parametrize("cycle", [True, False])
+def test_settling_that_steps_between_two_poses_ends_halfway(monkeypatch, cycle):
+    # each pass's fit steps the block 0.3 m, six of its standard deviations: back and forth
+    # (a 2-cycle) it has settled between the two poses, which the data favour in turn; the
+    # answer is halfway, 0.15 m, known to hypot(0.05, 0.15) m; always the same way, never
+    import types
+
+    from tiereg.fine import lsm
+
+    rng = np.random.default_rng(21)
+    placed = _points(rng, 200, half=50.0)
+    lidar = _points(rng, 4000, half=60.0)
+    centre = placed.mean(axis=0)
+    passes = []
+
+    def step(q0, observe, **kw):
+        sign = -1.0 if cycle and len(passes) % 2 else 1.0
+        passes.append(sign)
+        return _step_fit(Transform.from_translation((0.3 * sign, 0.0, 0.0)), centre, len(q0))
+
+    monkeypatch.setattr(lsm, "solve_helmert", step)
+    start = _step_fit(Transform.identity(), centre, len(placed))
+    reference = types.SimpleNamespace(spacing=1.5)
+    fit, _, _ = lsm._settle(start, placed, lidar, None, reference, method="lsm", hold=5.0,
+                            radius=1000.0, lift=False)
+    tx = PARAMETERS.index("tx")
+    if cycle:
+        assert fit.converged and len(passes) == 2
+        assert fit.T.apply(centre[None])[0] - centre == pytest.approx([0.15, 0.0, 0.0], abs=1e-9)
+        assert fit.sigma[tx] == pytest.approx(np.hypot(0.05, 0.15), rel=1e-9)
+    else:
+        assert not fit.converged and len(passes) == lsm.MAX_PASSES

@@ -40,7 +40,7 @@ from ..surface import SurfaceSampler
 from ..transform import Transform
 from .icp import NearestPlanes, nearest_plane_observer, plane_observer_icp, point_observer
 from .planes import SegmentPlanes
-from .solver import PARAMETERS, HelmertFit, Observer, solve_helmert
+from .solver import PARAMETERS, HelmertFit, Observer, increment, solve_helmert
 
 # The vertical model on gently sloped surfaces only (roofs, ground; cf. Gneeniss et al. 2015): at
 # steeper ones (walls, the step at a roof's edge) a tie point's horizontal error biases the height
@@ -246,10 +246,15 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, solid: np.nd
     standard deviations of that displacement: a move the data cannot tell from none (a fresh
     selection of neighbours moves a settled fit back and forth by a third of one or more); a
     fit still moving after :data:`MAX_PASSES` passes has not converged, and its precision means
-    nothing. ``lift``: whether the crowns' lift is taken off (:func:`_surface_observer`).
+    nothing. A fit whose pass brings the block back (by the same test) to where it was two
+    passes before steps between two poses that the fresh selections of the lidar favour in turn
+    (each re-measures the crowns' lift): the data cannot choose between them, so the answer is
+    the pose halfway and its precision is widened by half the step (:func:`_between`).
+    ``lift``: whether the crowns' lift is taken off (:func:`_surface_observer`).
     Returns the fit and the lidar last read, with its solid flags."""
     reach = NEAR_SPACINGS * reference.spacing
     read_at = placed[:, :2]
+    poses = [fit.T]
     for _ in range(MAX_PASSES):
         q = fit.T.apply(placed)
         if np.max(np.hypot(*(q[:, :2] - read_at).T)) > radius - reach:
@@ -266,10 +271,30 @@ def _settle(fit: HelmertFit, placed: np.ndarray, lidar: np.ndarray, solid: np.nd
         if again.n_observed < 10:
             return fit, lidar, solid
         moved = float(np.sqrt(np.mean(np.sum((again.T.apply(q) - q) ** 2, axis=1))))
-        fit = replace(again, T=again.T @ fit.T)
-        if moved < max(hold / 1000, SETTLED_SD * _displacement_sd(again, q)):
+        before, fit = fit, replace(again, T=again.T @ fit.T)
+        settled = max(hold / 1000, SETTLED_SD * _displacement_sd(again, q))
+        if moved < settled:
             return fit, lidar, solid
+        if len(poses) >= 2 and _rms_apart(fit.T, poses[-2], placed) < settled:
+            return _between(before, again), lidar, solid
+        poses.append(fit.T)
     return replace(fit, converged=False), lidar, solid
+
+
+def _rms_apart(A: Transform, B: Transform, points: np.ndarray) -> float:
+    """The RMS distance between the points placed by ``A`` and by ``B``."""
+    return float(np.sqrt(np.mean(np.sum((A.apply(points) - B.apply(points)) ** 2, axis=1))))
+
+
+def _between(before: HelmertFit, step: HelmertFit) -> HelmertFit:
+    """The pose halfway along ``step`` (a settling pass's fit, an increment of the pose of
+    ``before``), its standard deviations widened in quadrature by half the step, parameter by
+    parameter: the two poses are equally the data's answer (:func:`_settle`)."""
+    c = step.centre
+    p = step.T.parameters()
+    move = np.array([p.scale - 1.0, p.omega, p.phi, p.kappa, *(step.T.apply(c[None])[0] - c)])
+    half = increment(move / 2, c)
+    return replace(step, T=half @ before.T, sigma=np.hypot(step.sigma, move / 2))
 
 
 def _with_model_error(fit: HelmertFit, q: np.ndarray, whole: Observer, *,
