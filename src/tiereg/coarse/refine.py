@@ -82,8 +82,8 @@ def fit_to_surface_many(
     max_iterations: int = 600,
 ) -> list[SurfaceFit]:
     """:func:`fit_to_surface` from each of several starts: the same fits as one after another,
-    run in lock-step so that each round samples the surface once for the next trial pose of
-    every unfinished start (a fit is thousands of small evaluations, whose cost is mostly the
+    run in lock-step so that each round places and samples once the next trial poses of every
+    unfinished start (a fit is thousands of small evaluations, whose cost is mostly the
     interpreter's per-call overhead)."""
     steps = np.asarray(steps, dtype=np.float64)
     # only points well inside the surface count, judged at each evaluated pose: a fixed set
