@@ -596,7 +596,8 @@ def _step_fit(T, centre, n):
 def test_settling_that_steps_between_two_poses_ends_halfway(monkeypatch, cycle):
     # each pass's fit steps the block 0.3 m, six of its standard deviations: back and forth
     # (a 2-cycle) it has settled between the two poses, which the data favour in turn; the
-    # answer is halfway, 0.15 m, known to hypot(0.05, 0.15) m; always the same way, never
+    # answer is halfway, 0.15 m, known to hypot(0.05, 0.15) m. Stepping always the same way,
+    # it never settles
     import types
 
     from tiereg.fine import lsm
