@@ -147,35 +147,25 @@ class Reference:
         One streaming pass; a mask of cells of size ``radius`` marks the neighbourhoods, so memory
         follows the number of positions, not the lidar.
         """
-        lo = xy.min(axis=0) - 2 * radius
-        shape = (np.ceil((xy.max(axis=0) + 2 * radius - lo) / radius)).astype(int) + 1
-        near = np.zeros((shape[1], shape[0]), bool)  # rows: y, cols: x
-        ix = ((xy - lo) / radius).astype(int)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                near[ix[:, 1] + dy, ix[:, 0] + dx] = True
-        kept = []
-        box = (*(lo + self.origin[:2]), *(lo + radius * shape + self.origin[:2]))
-        for chunk in self.local_chunks(box=box, open_ground=open_ground):
-            jx = np.floor((chunk[:, 0] - lo[0]) / radius).astype(np.int64)
-            jy = np.floor((chunk[:, 1] - lo[1]) / radius).astype(np.int64)
-            inside = (jx >= 0) & (jx < shape[0]) & (jy >= 0) & (jy < shape[1])
-            sel = np.flatnonzero(inside)
-            sel = sel[near[jy[sel], jx[sel]]]
-            if len(sel):
-                kept.append(chunk[sel])
+        box, select = _near_cells(xy, radius, self.origin)
+        kept = [c[sel] for c in self.local_chunks(box=box, open_ground=open_ground)
+                if len(sel := select(c))]
         return np.concatenate(kept) if kept else np.empty((0, 3))
 
     def solid_near(self, xy: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`points_near` and whether each of them lies on a solid surface
-        (:func:`open_ground_mask`; all do where the points carry no classes or returns). A
-        second pass keeps the solid points, found again among the first pass's by their
-        coordinates (the same points in the same order, some left out)."""
-        points = self.points_near(xy, radius)
-        if not self.knows_open_ground or not len(points):
-            return points, np.ones(len(points), bool)
-        solid = self.points_near(xy, radius, open_ground=True)
-        return points, np.isin(_row_keys(points), _row_keys(solid))
+        (:func:`open_ground_mask`; all do where the points carry no classes or returns), in
+        the same one pass."""
+        box, select = _near_cells(xy, radius, self.origin)
+        kept, flags = [], []
+        for chunk, solid in _solid_chunks(self.source, self.first_returns_only, box):
+            chunk = chunk - self.origin
+            if len(sel := select(chunk)):
+                kept.append(chunk[sel])
+                flags.append(solid[sel])
+        if not kept:
+            return np.empty((0, 3)), np.empty(0, bool)
+        return np.concatenate(kept), np.concatenate(flags)
 
     def local_chunks(self, *, box: tuple[float, float, float, float] | None = None,
                      open_ground: bool = False) -> Iterator[np.ndarray]:
@@ -206,10 +196,27 @@ def _rebuilt_pending(source, origin, first_returns, source_args, spec) -> Refere
                      _pending=(spec, no_progress), _grid_where_used=True)
 
 
-def _row_keys(points: np.ndarray) -> np.ndarray:
-    """One number per point that equal coordinates share and different ones almost never do
-    (element by element, so the same point gives the same key in any array)."""
-    return points[:, 0] + points[:, 1] * (math.pi * 1e-3) + points[:, 2] * (math.e * 1e-6)
+def _near_cells(xy: np.ndarray, radius: float, origin: np.ndarray):
+    """The box (file coordinates) to read and a function that picks, from a chunk of points
+    (local), the indices of those within about ``radius`` of any of ``xy`` (local): a mask of
+    cells of size ``radius`` marks the neighbourhoods (:meth:`Reference.points_near`)."""
+    lo = xy.min(axis=0) - 2 * radius
+    shape = (np.ceil((xy.max(axis=0) + 2 * radius - lo) / radius)).astype(int) + 1
+    near = np.zeros((shape[1], shape[0]), bool)  # rows: y, cols: x
+    ix = ((xy - lo) / radius).astype(int)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near[ix[:, 1] + dy, ix[:, 0] + dx] = True
+    box = (*(lo + origin[:2]), *(lo + radius * shape + origin[:2]))
+
+    def select(chunk: np.ndarray) -> np.ndarray:
+        jx = np.floor((chunk[:, 0] - lo[0]) / radius).astype(np.int64)
+        jy = np.floor((chunk[:, 1] - lo[1]) / radius).astype(np.int64)
+        inside = (jx >= 0) & (jx < shape[0]) & (jy >= 0) & (jy < shape[1])
+        sel = np.flatnonzero(inside)
+        return sel[near[jy[sel], jx[sel]]]
+
+    return box, select
 
 
 def surface_mask(records, first_only: bool) -> np.ndarray:
@@ -243,6 +250,26 @@ def _chunks(source: PointSource, first_only: bool,
         return mask & open_ground_mask(records) if open_ground else mask
 
     return source.chunks(keep=keep, box=box)  # type: ignore[call-arg]
+
+
+def _solid_chunks(source: PointSource, first_only: bool,
+                  box: tuple[float, float, float, float] | None = None
+                  ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """:func:`_chunks`' points (file coordinates), each chunk with whether each point lies on
+    a solid surface (:func:`open_ground_mask`; all do without classes or returns)."""
+    if not isinstance(source, LasSource):
+        for chunk in source.chunks():
+            yield chunk, np.ones(len(chunk), bool)
+        return
+    flags: list[np.ndarray] = []
+
+    def keep(records) -> np.ndarray:  # called once for each chunk, before it is given
+        mask = surface_mask(records, first_only)
+        flags.append(open_ground_mask(records)[mask])
+        return mask
+
+    for chunk in source.chunks(keep=keep, box=box):  # type: ignore[call-arg]
+        yield chunk, flags.pop()
 
 
 def reference_spec(lo: np.ndarray, hi: np.ndarray,

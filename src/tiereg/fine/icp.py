@@ -117,12 +117,16 @@ class NearestPlanes:
             self._turn[todo] = kappa * np.sqrt(u2 / max(self._k - 1, 1))
         return self._normal[idx], self._roughness[idx], self._turn[idx]
 
-    def __call__(self, q: np.ndarray):
+    def _distances(self, q: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The nearest lidar point of each of ``q``, its patch's normal and roughness, the
+        signed distance to the patch and whether the point lies within ``reach`` in plan."""
         _, idx = self._tree.query(q)
         n, rho, _ = self._patch(idx)
         d = q - self.lidar[idx]
-        r = np.einsum("mi,mi->m", n, d)
-        ok = np.hypot(d[:, 0], d[:, 1]) <= self.reach
+        return idx, n, rho, np.einsum("mi,mi->m", n, d), np.hypot(d[:, 0], d[:, 1]) <= self.reach
+
+    def __call__(self, q: np.ndarray):
+        idx, n, rho, r, ok = self._distances(q)
         if self.solid is not None and math.isfinite(self.lift):
             r = r - self.lift * n[:, 2] * (ok & ~self.solid[idx])
         if self.weighted:
@@ -139,11 +143,7 @@ class NearestPlanes:
         self.lift = math.nan
         if self.solid is None:
             return self.lift
-        _, idx = self._tree.query(q)
-        n = self._patch(idx)[0]
-        d = q - self.lidar[idx]
-        r = np.einsum("mi,mi->m", n, d)
-        near = np.hypot(d[:, 0], d[:, 1]) <= self.reach
+        idx, n, _, r, near = self._distances(q)
         crown, ground = near & ~self.solid[idx], near & self.solid[idx]
         lift = crown_lift(r, n, crown) - crown_lift(r, n, ground)
         if lift > LIFT_SE * (lift_se(r, n, crown) ** 2 + lift_se(r, n, ground) ** 2) ** 0.5:
